@@ -1,0 +1,159 @@
+"""Batched MEWA: many (task, worker) pairs stepped at once with numpy, as a Gymnasium vector env."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from mewa_bench.envs.pairs import PairSource
+from mewa_bench.game.normalise import return_bounds
+from mewa_bench.game.palette import NUM_COLORS, OBS_SIZE
+from mewa_bench.game.table import transition_table
+from mewa_bench.game.task import Task, Worker
+
+
+class StackedTables:
+    """The transition tables of several tasks concatenated into one state space (offset per task)."""
+
+    def __init__(self, tasks: Sequence[Task]) -> None:
+        tables = [transition_table(t) for t in tasks]
+        sizes = [t.n_states for t in tables]
+        self.start = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)  # initial state per task
+        shift = np.repeat(self.start, sizes)[:, None]
+        self.next_ok = (np.concatenate([t.next_ok for t in tables]) + shift).ravel()
+        self.next_mistake = (np.concatenate([t.next_mistake for t in tables]) + shift).ravel()
+        # Mistake type -1 (no mistake possible) points at column NUM_COLORS of the padded workers (= 0).
+        mtype = np.concatenate([t.mistake_type for t in tables]).astype(np.int64)
+        self.mistake_column = np.where(mtype < 0, NUM_COLORS, mtype).ravel()
+        self.obs = np.concatenate([t.obs for t in tables])
+        self.reward = np.concatenate([t.reward for t in tables])
+        self.terminal = np.concatenate([t.terminal for t in tables])
+        self.progress = np.concatenate([t.progress for t in tables])
+        bounds = np.array([return_bounds(t) for t in tasks])
+        self.r_min, self.r_span = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
+        self.horizon = np.array([t.T for t in tasks], dtype=np.int64)
+
+
+class MewaVectorEnv(VectorEnv):
+    """`num_envs` MEWA games stepped together; same rules and arguments as `MewaEnv`.
+
+    Each sub-env plays its own (task, worker) pair: the fixed pair, or a task and a meta-train
+    worker sampled at each of its resets. Sub-envs reset themselves on the step *after* their
+    episode ended (`AutoresetMode.NEXT_STEP`, Gymnasium's default): that step ignores the action
+    and returns the first observation of the new episode with reward 0.
+
+    `infos` hold `progress` [num_envs] and, on steps where some episode ends, `episode_return` and
+    `normalised_return` with their `_`-prefixed masks. `env.workers` and
+    `env.task_indices` give each sub-env's current pair.
+    """
+
+    metadata: dict[str, Any] = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
+
+    def __init__(self, num_envs: int = 1, task: Task | dict | None = None, worker: Sequence[float] | None = None,
+                 tasks: Sequence[Task | dict] | None = None, include_centre: bool = False,
+                 render_mode: str | None = None) -> None:
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if render_mode is not None:
+            raise ValueError("the batched env does not render; use MewaEnv for render modes")
+        self.num_envs = num_envs
+        self.render_mode = None
+        self._source = PairSource.build(task, worker, tasks, include_centre)
+        self._stack = StackedTables(self._source.tasks)
+        self.single_action_space = spaces.Discrete(NUM_COLORS)
+        self.single_observation_space = spaces.Box(0.0, 255.0, shape=(OBS_SIZE,), dtype=np.float32)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self._rows = np.arange(num_envs)
+        self._state = np.zeros(num_envs, dtype=np.int64)
+        self._task_idx = np.zeros(num_envs, dtype=np.int64)
+        self._workers = np.zeros((num_envs, NUM_COLORS + 1))  # + a zero column for "no mistake possible"
+        self._t = np.zeros(num_envs, dtype=np.int64)
+        self._return = np.zeros(num_envs)
+        self._needs_reset = np.ones(num_envs, dtype=bool)
+
+    @property
+    def tasks(self) -> tuple[Task, ...]:
+        """The tasks the sub-envs draw from (index = `task_indices`)."""
+        return self._source.tasks
+
+    @property
+    def task_indices(self) -> np.ndarray:
+        """Index into `tasks` of each sub-env's current task."""
+        return self._task_idx.copy()
+
+    @property
+    def workers(self) -> np.ndarray:
+        """Each sub-env's current worker, float64 [num_envs, 4] (unused components 0)."""
+        return self._workers[:, :NUM_COLORS].copy()
+
+    def _start_episodes(self, rows: np.ndarray) -> None:
+        task_idx, workers = self._source.sample(self.np_random, len(rows))
+        self._task_idx[rows] = task_idx
+        self._workers[rows, :NUM_COLORS] = workers
+        self._state[rows] = self._stack.start[task_idx]
+        self._t[rows] = 0
+        self._return[rows] = 0.0
+        self._needs_reset[rows] = False
+
+    def reset(self, *, seed: int | Sequence[int] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every sub-env; `options={"task": ..., "worker": ...}` fixes one pair for all of them."""
+        if seed is not None and not isinstance(seed, (int, np.integer)):
+            raise ValueError("the batched env takes one integer seed for all sub-envs")
+        super().reset(seed=seed)
+        options = options or {}
+        unknown = set(options) - {"task", "worker"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected 'task' and/or 'worker'")
+        if options:
+            task = options.get("task", self._source.tasks[0] if len(self._source.tasks) == 1 else None)
+            if task is None:
+                raise ValueError("reset option 'worker' needs a 'task' when the env has several tasks")
+            worker = Worker.of(options["worker"]) if "worker" in options else None
+            self._source = PairSource.build(task, worker, None, self._source.include_centre)
+            self._stack = StackedTables(self._source.tasks)
+        self._start_episodes(self._rows)
+        return self._stack.obs[self._state], {"progress": np.zeros(self.num_envs, dtype=np.int8)}
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every sub-env with its action (int array [num_envs] of colours 0..3)."""
+        a = np.asarray(actions)
+        if a.shape != (self.num_envs,) or a.dtype.kind not in "iu":
+            raise ValueError(f"actions must be an int array of shape ({self.num_envs},), got {a.dtype} {a.shape}")
+        if a.size and (a.min() < 0 or a.max() >= NUM_COLORS):
+            bad = np.flatnonzero((a < 0) | (a >= NUM_COLORS))
+            raise ValueError(f"invalid action(s) at sub-env(s) {bad[:5].tolist()}: expected 0..{NUM_COLORS - 1}")
+        st = self._stack
+        flat = self._state * NUM_COLORS + a
+        column = st.mistake_column[flat]
+        p = self._workers[self._rows, column]
+        mistake = self.np_random.random(self.num_envs) < p
+        nxt = np.where(mistake, st.next_mistake[flat], st.next_ok[flat])
+        resetting = self._needs_reset.copy()
+        if resetting.any():
+            rows = np.flatnonzero(resetting)
+            self._start_episodes(rows)
+            nxt[rows] = self._state[rows]
+            self._t[rows] = -1  # the reset step itself does not count
+        self._state = nxt
+        self._t += 1
+        reward = st.reward[nxt]
+        reward[resetting] = 0.0
+        self._return += reward
+        terminated = st.terminal[nxt] & ~resetting
+        truncated = (self._t >= st.horizon[self._task_idx]) & ~terminated
+        done = terminated | truncated
+        self._needs_reset = done
+        infos: dict[str, Any] = {"progress": st.progress[nxt]}
+        if done.any():
+            ti = self._task_idx
+            infos["episode_return"] = np.where(done, self._return, 0.0)
+            infos["normalised_return"] = np.where(done, (self._return - st.r_min[ti]) / st.r_span[ti], 0.0)
+            for key in ("episode_return", "normalised_return"):
+                infos["_" + key] = done
+        return st.obs[nxt], reward, terminated, truncated, infos

@@ -1,0 +1,224 @@
+"""The MEWA Gymnasium environment (vector observations)."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Sequence
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from mewa_bench.envs.pairs import PairSource, as_task
+from mewa_bench.game.normalise import return_bounds
+from mewa_bench.game.palette import COLOR_NAMES, NUM_COLORS, OBS_SIZE
+from mewa_bench.game.table import transition_table
+from mewa_bench.game.task import Task, Worker
+
+ENV_VERSION = "v0"
+_PAIR_BATCH = 64
+
+
+class MewaEnv(gym.Env):
+    """
+    ## Description
+    MEWA ("Meta-learning for Worker Adapting", Stoican, Cangelosi & Weisswange, IEEE SSCI 2023).
+    The agent hands coloured blocks, one per step, to a simulated worker that builds one structure
+    per colour. Structures must be completed in a hidden sub-goal order. When a structure gets its
+    second block the worker may make a mistake, with a probability `w[x]` that depends on how many
+    structures are open at once (`x + 1`); a mistaken structure is handed back when it reaches `M`
+    blocks. The worker's mistake probabilities are hidden and differ from one task variation to the
+    next, so a good agent must adapt to the worker it faces.
+
+    ## Action Space
+    `Discrete(4)`: the palette colour of the block to hand over,
+    `0 orange, 1 blue, 2 green, 3 red`. A colour the task does not use, or of which the agent has no
+    block left, is a no-op that still costs the step's reward.
+
+    ## Observation Space
+    `Box(0, 255, (18,), float32)`:
+    - `[0:4]` blocks the agent holds, per palette colour;
+    - `[4:12]` per colour: blocks in the worker's open structure, and its mistake flag (0/1);
+    - `[12:16]` completed flag per colour;
+    - `[16]` worker blocks not yet placed, `[17]` worker blocks placed.
+
+    ## Rewards
+    While sub-goal `i` is the current one, every step gives `task.rewards[i]` (negative, increasing
+    with `i`); the step that completes the last sub-goal gives 0.
+
+    ## Starting State
+    `K` blocks of each colour the task uses; no structures; no worker blocks placed.
+
+    ## Episode End
+    - Termination: every sub-goal has been completed.
+    - Truncation: `task.T` (= 100) steps without termination.
+
+    ## Information
+    `info["progress"]` (sub-goals reached), `info["events"]` (a tuple of `Event`s: `mistake`,
+    `structure_completed`, `structure_returned`, `subgoal_reached`), and at the end of an episode
+    `info["episode_return"]` and `info["normalised_return"]` (SPEC section 2: 0 = worst, 1 = perfect).
+
+    ## Arguments
+    ```python
+    gymnasium.make("mewa/MEWA-v0")                          # narrow-v1 task, meta-train workers
+    gymnasium.make("mewa/MEWA-v0", task=task, worker=(0.6, 0.4, 0.2, 0.1))   # one fixed pair
+    gymnasium.make("mewa/MEWA-v0", tasks=suite.tasks)       # a task and a worker sampled per reset
+    ```
+    - `task`: a `Task` (or its JSON dict). With `worker`, the pair is fixed; without, a meta-train
+      worker is sampled from the task's distribution at every reset.
+    - `tasks`: several tasks; each reset samples one uniformly, then a meta-train worker.
+    - `include_centre`: also sample meta-train workers from the centre band (see `distributions`).
+    - `reset(options={"task": ..., "worker": ...})` switches to that pair (for this and later resets);
+      `reset(options={"keep_pair": True})` plays the current pair again (see `MetaEpisode`).
+
+    ## Version History
+    - v0: the rules of SPEC section 2, reproducing the authors' reference traces exactly.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": ["ansi"], "render_fps": 4}
+
+    def __init__(self, task: Task | dict | None = None, worker: Sequence[float] | None = None,
+                 tasks: Sequence[Task | dict] | None = None, include_centre: bool = False,
+                 render_mode: str | None = None) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode {render_mode!r} is not one of {self.metadata['render_modes']}")
+        self.render_mode = render_mode
+        self.action_space = spaces.Discrete(NUM_COLORS)
+        self.observation_space = spaces.Box(0.0, 255.0, shape=(OBS_SIZE,), dtype=np.float32)
+        self._source = PairSource.build(task, worker, tasks, include_centre)
+        self._set_pair(self._source.tasks[0], self._source.worker or Worker((0.0,) * self._source.tasks[0].N))
+        self._t = 0
+        self._done = True
+        self._pending: list[tuple[int, list[float]]] = []
+
+    # -- the current pair -------------------------------------------------------------------------
+    @property
+    def task(self) -> Task:
+        """The task being played (hidden from agents under the evaluation protocol)."""
+        return self._task
+
+    @property
+    def worker(self) -> Worker:
+        """The worker of the current episode (hidden from agents under the evaluation protocol)."""
+        return self._worker
+
+    def _set_pair(self, task: Task, worker: Worker) -> None:
+        worker.check_fits(task)
+        if getattr(self, "_task", None) is None or task.key() != self._task.key():
+            self._fast = _fast_table(task)
+            self._r_min, r_max = return_bounds(task)
+            self._r_span = r_max - self._r_min
+        self._task, self._worker = task, worker
+        self._w = list(worker.w)
+
+    # -- Gymnasium API ----------------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        """Start an episode.
+
+        `options` may fix a new pair, {"task": Task|dict, "worker": [w_0, ...]}, for this and later
+        resets, or ask to replay the current pair once more, {"keep_pair": True}.
+        """
+        super().reset(seed=seed)
+        if seed is not None:
+            self._pending.clear()
+        options = options or {}
+        unknown = set(options) - {"task", "worker", "keep_pair"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected 'task', 'worker' or 'keep_pair'")
+        if options.get("keep_pair"):
+            if len(options) > 1:
+                raise ValueError("reset option 'keep_pair' cannot be combined with 'task' or 'worker'")
+            return self._start()
+        if "task" in options or "worker" in options:
+            task = as_task(options["task"]) if "task" in options else self._task
+            if "worker" not in options and (task.average_worker is None or task.sigma is None):
+                raise ValueError("reset option 'task' without 'worker' needs a task with a worker distribution")
+            worker = Worker.of(options["worker"]) if "worker" in options else None
+            self._source = PairSource((task,), worker, self._source.include_centre)
+            self._source.check()
+            self._pending.clear()
+        if not self._pending:  # sampling pairs in batches makes resets ~50x cheaper
+            task_idx, workers = self._source.sample(self.np_random, _PAIR_BATCH)
+            self._pending.extend(reversed(list(zip(task_idx.tolist(), workers.tolist()))))
+        i, w = self._pending.pop()
+        task = self._source.tasks[i]
+        self._set_pair(task, Worker(tuple(w[: task.N])))
+        return self._start()
+
+    def _start(self) -> tuple[np.ndarray, dict]:
+        self._s = 0
+        self._t = 0
+        self._return = 0.0
+        self._done = False
+        return self._fast.obs[0].copy(), {"progress": 0, "events": ()}
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Hand over one block of colour `action`."""
+        if self._done:
+            raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
+        a = int(action)
+        if a != action or not 0 <= a < NUM_COLORS:
+            raise ValueError(f"invalid action {action!r}: expected an int in 0..{NUM_COLORS - 1}")
+        f = self._fast
+        s = self._s
+        x = f.mistake_type[s][a]
+        if x >= 0 and self.np_random.random() < self._w[x]:
+            s, events = f.next_mistake[s][a], f.events_mistake[s][a]
+        else:
+            s, events = f.next_ok[s][a], f.events_ok[s][a]
+        self._s = s
+        self._t += 1
+        reward = f.reward[s]
+        self._return += reward
+        terminated = f.terminal[s]
+        truncated = self._t >= self._task.T and not terminated
+        info: dict[str, Any] = {"progress": f.progress[s], "events": f.event_sets[events]}
+        if terminated or truncated:
+            self._done = True
+            info["episode_return"] = self._return
+            info["normalised_return"] = (self._return - self._r_min) / self._r_span
+        return f.obs[s].copy(), reward, terminated, truncated, info
+
+    def render(self) -> str | None:
+        """Text picture of the current state (render_mode="ansi")."""
+        if self.render_mode != "ansi":
+            return None
+        return render_text(self._task, self._fast.obs[self._s], self._t)
+
+
+class _FastTable(NamedTuple):
+    """A transition table as nested Python lists: indexing them is several times faster than numpy's."""
+
+    next_ok: list[list[int]]
+    next_mistake: list[list[int]]
+    mistake_type: list[list[int]]
+    events_ok: list[list[int]]
+    events_mistake: list[list[int]]
+    event_sets: tuple
+    obs: np.ndarray
+    reward: list[float]
+    terminal: list[bool]
+    progress: list[int]
+
+
+_FAST: dict[tuple, _FastTable] = {}
+
+
+def _fast_table(task: Task) -> _FastTable:
+    key = task.key()
+    if key not in _FAST:
+        t = transition_table(task)
+        _FAST[key] = _FastTable(t.next_ok.tolist(), t.next_mistake.tolist(), t.mistake_type.tolist(),
+                                t.events_ok.tolist(), t.events_mistake.tolist(), t.event_sets, t.obs,
+                                t.reward.tolist(), t.terminal.tolist(), t.progress.tolist())
+    return _FAST[key]
+
+
+def render_text(task: Task, obs: np.ndarray, t: int) -> str:
+    """A few lines describing an observation, for humans."""
+    lines = [f"step {t}/{task.T}  order: {' > '.join(COLOR_NAMES[c] for c in task.order)}"]
+    for c in task.colors:
+        flag = " (mistake)" if obs[5 + 2 * c] else ""
+        done = " done" if obs[12 + c] else ""
+        lines.append(f"  {COLOR_NAMES[c]:<6} agent {int(obs[c])}  structure {int(obs[4 + 2 * c])}{flag}{done}")
+    lines.append(f"  worker blocks: {int(obs[17])} placed, {int(obs[16])} to place")
+    return "\n".join(lines)

@@ -1,0 +1,36 @@
+"""What `mewa-bench info` reports: package versions, env ids, Python and platform."""
+
+from __future__ import annotations
+
+import platform
+import sys
+from importlib import metadata
+
+KEY_PACKAGES = ("numpy", "scipy", "gymnasium", "typer", "rich", "mcap", "rerun-sdk", "lerobot", "torch", "sapien")
+
+
+def package_version(name: str) -> str:
+    """Installed version of a distribution, or 'not installed' (read from metadata, nothing imported)."""
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def system_info() -> dict[str, str]:
+    """Versions and platform facts, in display order."""
+    from mewa_bench import __version__
+    from mewa_bench.envs.registration import ENV_IDS
+
+    info = {"mewa-bench": __version__, "env ids": ", ".join(ENV_IDS)}
+    info.update({name: package_version(name) for name in KEY_PACKAGES})
+    info["python"] = f"{platform.python_version()} ({sys.executable})"
+    info["platform"] = platform.platform()
+    info["machine"] = f"{platform.machine()}, {_cpu_count()} CPUs"
+    return info
+
+
+def _cpu_count() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

@@ -1,0 +1,41 @@
+"""Shared fixtures: the reference traces and a canonical task."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from mewa_bench.game import Task
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("MEWA_SHARED", REPO.parent / "shared"))
+TRACES = SHARED / "reference" / "traces-canonical.json"
+
+
+def load_traces() -> list[dict]:
+    """The reference traces recorded from the authors' original code."""
+    if not TRACES.exists():
+        pytest.fail(f"reference traces not found at {TRACES} (set MEWA_SHARED to the shared/ folder)")
+    return json.loads(TRACES.read_text())["traces"]
+
+
+@pytest.fixture(scope="session")
+def traces() -> list[dict]:
+    return load_traces()
+
+
+@pytest.fixture(scope="session")
+def canonical_task() -> Task:
+    """The canonical task with the traces' rewards and an illustrative worker distribution."""
+    return Task(colors=(0, 1, 2, 3), order=(3, 1, 2, 0), K=5, M=3, rewards=(-0.4, -0.3, -0.2, -0.1),
+                worker_blocks=(2, 2, 4, 0), name="canonical").with_distribution((0.6, 0.4, 0.25, 0.1))
+
+
+@pytest.fixture(scope="session")
+def small_task() -> Task:
+    """An N = 3 task with M = K = 4 and a non-trivial order."""
+    return Task(colors=(0, 2, 3), order=(2, 0, 3), K=4, M=4, rewards=(-1.0, -0.5, -0.2),
+                worker_blocks=(3, 5, 0), name="n3").with_distribution((0.5, 0.3, 0.15))
