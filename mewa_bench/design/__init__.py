@@ -1,0 +1,1 @@
+"""Task design: policies, exact engine, average worker, curation, suites."""
