@@ -1,0 +1,221 @@
+"""Generate the versioned suites (`narrow-v1`, `wide-v1`) from the paper's task-design method.
+
+Pipeline per task: Eq. 1 average worker and rewards (shared by all tasks with the same N and M),
+curated meta-test workers, then every reference value of every curated pair, all exact. The
+output is a plain dict; `suites.suite_text` turns it into the exact bytes of the shipped file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any, Callable
+
+import numpy as np
+
+from mewa_bench.design import exact, optimum
+from mewa_bench.design.average_worker import DELTAS, EPSILONS, AverageWorkerDesign, design_average_worker
+from mewa_bench.design.curate import DECIMALS, MIN_BEST_RETURN, P_THRESHOLD, curate, mean_absolute_deviation, ratios_to_best
+from mewa_bench.design.policies import RANDOM, RANDOM_TASK_SPECIFIC, policy_names
+from mewa_bench.design.suites import SUITE_FORMAT_VERSION
+from mewa_bench.game.distributions import meta_test_candidates
+from mewa_bench.game.task import Task, default_sigma
+
+GENERATOR_VERSION = 1
+GRID_STEP = 0.05
+CANONICAL = dict(colors=(0, 1, 2, 3), order=(3, 1, 2, 0), K=5, M=3, worker_blocks=(2, 2, 4, 0))
+WORKER_BLOCK_TOTAL = 8  # wide tasks: a random composition of 8 into N - 1 positive parts, then 0
+# A task is adaptive when no single t-optimal policy reaches this ratio to the per-worker best on
+# every curated worker; sampled wide tasks that are not are rejected (and recorded) and resampled.
+ADAPTIVE_RATIO = 0.99
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class SuiteSpec:
+    """What a suite is generated from."""
+
+    name: str
+    kind: str  # "narrow" or "wide"
+    version: int
+    seed: int | None
+    n_tasks: int
+    cap: int
+
+
+SPECS = {
+    "narrow": SuiteSpec("narrow-v1", "narrow", 1, None, 1, 16),
+    "wide": SuiteSpec("wide-v1", "wide", 1, 20231105, 10, 8),
+}
+
+
+def _round(x: Any) -> Any:
+    """Round floats (also inside lists / arrays) to the suite's 12 decimals."""
+    if isinstance(x, np.ndarray):
+        return [_round(v) for v in x.tolist()]
+    if isinstance(x, (list, tuple)):
+        return [_round(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return round(float(x), DECIMALS) + 0.0  # + 0.0 turns -0.0 into 0.0
+    return x
+
+
+def reference_task(n: int, m: int, rewards: tuple[float, ...]) -> Task:
+    """The task on which Eq. 1's (delta, epsilon) choice is scored for (N, M).
+
+    N = 4, M = 3 is the canonical task; otherwise the canonical shape cut to N colours with K = 5 and
+    worker blocks (2, 2, 4, 0) / (4, 4, 0). Colour labels do not change any value, only N, M, K,
+    the worker blocks and the rewards do.
+    """
+    if n == 4:
+        return Task(**{**CANONICAL, "M": m}, rewards=rewards)
+    return Task(colors=tuple(range(n)), order=tuple(range(n)), K=5, M=m, rewards=rewards,
+                worker_blocks=(4, 4, 0) if n == 3 else (8, 0))
+
+
+def mad_at(task: Task, w: np.ndarray) -> float:
+    """MAD of the t-optimal policies' exact normalised returns at one worker."""
+    values = exact.expected_returns(task, policy_names(task.N, baselines=False), np.asarray(w)[None, :])
+    return float(mean_absolute_deviation(values[:, 0]))
+
+
+@lru_cache(maxsize=None)
+def average_worker_design(n: int, m: int) -> AverageWorkerDesign:
+    """Eq. 1 for (N, M), the (delta, epsilon) choice scored on `reference_task`."""
+    return design_average_worker(n, m, mad_of=lambda w, r: mad_at(reference_task(n, m, tuple(r)), w))
+
+
+def non_adaptive_ratio(pairs: list[dict]) -> float:
+    """The best single policy's worst ratio to the per-worker best over a task's curated pairs."""
+    ratio = ratios_to_best(np.array([p["toptimal"] for p in pairs]))
+    return float(ratio.min(axis=0).max())
+
+
+def sample_wide_task(rng: np.random.Generator, index: int) -> Task:
+    """One wide task (SPEC section 4), drawing from `rng` in a fixed order."""
+    n = int(rng.choice([3, 4]))
+    colors = tuple(sorted(int(c) for c in rng.choice(4, size=n, replace=False)))
+    order = tuple(int(c) for c in rng.permutation(colors))
+    k = int(rng.choice([3, 4, 5]))
+    m = int(rng.choice([3, 4, 5]))
+    while m > k:
+        m = int(rng.choice([3, 4, 5]))
+    cuts = np.sort(rng.choice(np.arange(1, WORKER_BLOCK_TOTAL), size=n - 2, replace=False))
+    parts = np.diff(np.concatenate([[0], cuts, [WORKER_BLOCK_TOTAL]]))
+    blocks = tuple(int(b) for b in parts) + (0,)
+    name = f"wide-{index:02d}-n{n}-k{k}-m{m}"
+    placeholder = tuple(-1.0 + 0.1 * i for i in range(n))  # replaced by Eq. 1's rewards below
+    return Task(colors=colors, order=order, K=k, M=m, rewards=placeholder, worker_blocks=blocks, name=name)
+
+
+def designed(task: Task) -> tuple[Task, AverageWorkerDesign]:
+    """The task with Eq. 1's average worker, rewards and the default sigma."""
+    d = average_worker_design(task.N, task.M)
+    return task.with_rewards(d.r).with_distribution(d.w, default_sigma(task.N)), d
+
+
+def task_entry(task: Task, design: AverageWorkerDesign, mad_here: float, curation_info: dict) -> dict[str, Any]:
+    """The suite's record of a task: parameters plus how they were designed."""
+    entry = task.to_dict()
+    entry["design"] = {
+        "eq1_objective": design.objective, "delta": design.delta, "epsilon": design.epsilon,
+        "mad_at_average_worker": _round(mad_here), "eq1_selection_mad": design.mad,
+        "eq1_candidates": [{"delta": c.delta, "epsilon": c.epsilon, "w": _round(c.w), "r": _round(c.r),
+                            "objective": c.objective, "mad": c.mad} for c in design.candidates],
+    }
+    entry["curation"] = curation_info
+    return entry
+
+
+def curate_task(task: Task, task_index: int, cap: int, progress: Progress) -> tuple[dict, list[dict]]:
+    """Curated workers of one task and every reference value of its pairs."""
+    names = policy_names(task.N, baselines=False)
+    candidates = meta_test_candidates(task, GRID_STEP)
+    progress(f"{task.name}: exact returns of {len(names)} policies on {len(candidates):,} candidate workers")
+    values = exact.expected_returns(task, names, candidates).T  # [C, P]
+    cur = curate(values, cap)
+    chosen = candidates[list(cur.selected)]
+    progress(f"{task.name}: {len(chosen)} curated workers; baselines and known-worker optimum")
+    v = np.round(values[list(cur.selected)], DECIMALS)
+    baselines = np.round(exact.expected_returns(task, [RANDOM, RANDOM_TASK_SPECIFIC], chosen), DECIMALS)
+    best_known = np.round(optimum.known_worker_optimum(task, chosen), DECIMALS)
+    ratio = ratios_to_best(v)
+    best_fixed = int(np.argmax(np.round(ratio.mean(axis=0), DECIMALS)))
+    pairs = []
+    for i, w in enumerate(chosen):
+        pairs.append({
+            "task": task_index, "worker": _round(w), "phase": cur.phase[i],
+            "toptimal": _round(v[i]), "best_policy": names[int(np.argmax(v[i]))],
+            "baselines": {"random": _round(baselines[0, i]), "random_task_specific": _round(baselines[1, i]),
+                          "max_expected": _round(v[i].max())},
+            "best_fixed": _round(v[i, best_fixed]), "known_worker_optimum": _round(best_known[i]),
+        })
+    info = {"candidates": int(len(candidates)), "usable_candidates": cur.kept_candidates,
+            "phase2_policy": names[cur.phase2_policy], "best_fixed_policy": names[best_fixed],
+            "best_fixed_mean_ratio": _round(ratio[:, best_fixed].mean()),
+            "workers": len(chosen), "phase1_workers": cur.phase.count(1)}
+    return info, pairs
+
+
+def summarise(pairs: list[dict]) -> dict[str, Any]:
+    """Suite-level means on the normalised and on the score scale (ratio to max-expected)."""
+    cols = {
+        "random": [p["baselines"]["random"] for p in pairs],
+        "random_task_specific": [p["baselines"]["random_task_specific"] for p in pairs],
+        "max_expected": [p["baselines"]["max_expected"] for p in pairs],
+        "best_fixed": [p["best_fixed"] for p in pairs],
+        "known_worker_optimum": [p["known_worker_optimum"] for p in pairs],
+    }
+    best = np.array(cols["max_expected"])
+    normalised = {k: _round(float(np.mean(v))) for k, v in cols.items()}
+    score = {k: _round(float(np.mean(np.array(v) / best))) for k, v in cols.items()}
+    s_rts = score["random_task_specific"]
+    return {
+        "pairs": len(pairs), "normalised": normalised, "score": score,
+        "non_adaptive_gap": _round(1.0 - score["best_fixed"]),
+        "skill": {k: _round((s - s_rts) / (1.0 - s_rts)) for k, s in score.items()},
+    }
+
+
+def generate_suite(kind: str, progress: Progress = lambda msg: None) -> dict[str, Any]:
+    """Build the content of suite `kind` ("narrow" or "wide"), without its hash."""
+    if kind not in SPECS:
+        raise ValueError(f"unknown suite kind {kind!r}: expected one of {', '.join(SPECS)}")
+    spec = SPECS[kind]
+    rng = np.random.default_rng(spec.seed)
+    tasks: list[dict] = []
+    pairs: list[dict] = []
+    rejected: list[dict] = []
+    samples = 0
+    while len(tasks) < spec.n_tasks:
+        if kind == "narrow":
+            raw = Task(**CANONICAL, rewards=(-1.0, -0.5, -0.2, -0.1), name="canonical-n4-k5-m3")
+        else:
+            raw = sample_wide_task(rng, len(tasks))
+        samples += 1
+        progress(f"{raw.name}: Eq. 1 average worker and rewards for N={raw.N}, M={raw.M}")
+        task, design = designed(raw)
+        info, task_pairs = curate_task(task, len(tasks), spec.cap, progress)
+        worst = non_adaptive_ratio(task_pairs)
+        if kind == "wide" and worst >= ADAPTIVE_RATIO:
+            rejected.append({"sample": samples - 1, "task": {k: v for k, v in raw.to_dict().items() if k != "rewards"},
+                             "best_single_policy_worst_ratio": _round(worst)})
+            continue
+        info["best_single_policy_worst_ratio"] = _round(worst)
+        tasks.append(task_entry(task, design, mad_at(task, np.array(task.average_worker)), info))
+        pairs += task_pairs
+    return {
+        "format_version": SUITE_FORMAT_VERSION, "name": spec.name, "suite": spec.kind, "version": spec.version,
+        "env_id": "mewa/MEWA-v0", "env_version": "v0",
+        "description": f"MEWA {spec.kind} suite: curated meta-test (task, worker) pairs with exact reference values",
+        "generator": {
+            "command": f"mewa-bench generate {kind}", "generator_version": GENERATOR_VERSION, "seed": spec.seed,
+            "n_tasks": spec.n_tasks, "cap": spec.cap, "grid_step": GRID_STEP, "deltas": list(DELTAS),
+            "epsilons": list(EPSILONS), "p_threshold": P_THRESHOLD, "min_best_return": MIN_BEST_RETURN,
+            "decimals": DECIMALS, "adaptive_ratio": ADAPTIVE_RATIO, "tasks_sampled": samples,
+            "rejected_tasks": rejected,
+        },
+        "policies": {str(n): list(policy_names(n, baselines=False)) for n in sorted({len(t["colors"]) for t in tasks})},
+        "tasks": tasks, "pairs": pairs, "summary": summarise(pairs),
+    }

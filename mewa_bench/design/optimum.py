@@ -1,0 +1,90 @@
+"""Known-worker optimum (SPEC section 4): the best expected return when the worker is known.
+
+Finite-horizon backward induction over every reachable game state and every action, batched over
+workers: U_t(s) = r(s) + max_a [(1 - w_x) U_{t-1}(ok(s, a)) + w_x U_{t-1}(bad(s, a))], where r(s)
+is the reward on arriving in s. Time-dependent Markov policies are optimal for a finite horizon,
+so no history-dependent policy (a t-optimal policy with its counters, say) can do better.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from mewa_bench.design.exact import as_workers, structural_task
+from mewa_bench.game.normalise import normalised_return
+from mewa_bench.game.palette import NUM_COLORS
+from mewa_bench.game.table import TransitionTable, transition_table
+from mewa_bench.game.task import Task
+
+CHUNK = 64  # workers per block: the [S * 4, W] action values of a block stay a few MB
+
+
+def state_depths(table: TransitionTable) -> np.ndarray:
+    """Fewest steps from the initial state to each state (breadth-first over all actions)."""
+    depth = np.full(table.n_states, -1, dtype=np.int64)
+    depth[0] = 0
+    frontier = np.array([0])
+    while len(frontier):
+        reached = np.unique(np.concatenate([table.next_ok[frontier].ravel(), table.next_mistake[frontier].ravel()]))
+        reached = reached[depth[reached] < 0]
+        depth[reached] = depth[frontier[0]] + 1
+        frontier = reached
+    return depth
+
+
+class _Layout(NamedTuple):
+    """The table's state-action pairs as rows s * 4 + a, states sorted by depth."""
+
+    ok: np.ndarray  # int64 [S * 4]: row of the state reached without a mistake
+    bad: np.ndarray  # int64 [S * 4]: with a mistake
+    branching: np.ndarray  # int64: rows where a mistake is possible
+    mistake_type: np.ndarray  # int64: per branching row
+    progress: np.ndarray  # int64 [S]: reward id of each state (N when terminal)
+    active: np.ndarray  # int64 [T + 1]: states that can still be reached with t steps left
+
+
+def _layout(table: TransitionTable, horizon: int) -> _Layout:
+    """Reorder the table by depth so that the states needed at each step form a prefix."""
+    depth = state_depths(table)
+    order = np.argsort(depth, kind="stable")
+    position = np.empty(table.n_states, dtype=np.int64)
+    position[order] = np.arange(table.n_states)
+    kind = table.mistake_type[order].ravel().astype(np.int64)
+    branching = np.flatnonzero(kind >= 0)
+    active = np.searchsorted(depth[order], horizon - np.arange(horizon + 1), side="right")
+    return _Layout(position[table.next_ok[order]].ravel(), position[table.next_mistake[order]].ravel(),
+                   branching, kind[branching], table.progress[order].astype(np.int64), active)
+
+
+def _optimal_block(task: Task, layout: _Layout, workers: np.ndarray) -> np.ndarray:
+    """Optimal raw return from the initial state for a block of workers [Wc, N] -> [Wc]."""
+    w_branch = workers.T[layout.mistake_type]
+    arrival = np.append(np.asarray(task.rewards, dtype=np.float64), 0.0)[layout.progress][:, None]
+    after = np.repeat(arrival, len(workers), axis=1)  # arrival reward + V_t, here t = 0
+    value = np.zeros_like(after)
+    for t in range(1, task.T + 1):
+        n_active = layout.active[t]
+        rows = n_active * NUM_COLORS
+        nb = np.searchsorted(layout.branching, rows)
+        branching = layout.branching[:nb]
+        q = after[layout.ok[:rows]]
+        gap = after[layout.bad[branching]] - q[branching]
+        gap *= w_branch[:nb]
+        q[branching] += gap
+        np.max(q.reshape(n_active, NUM_COLORS, -1), axis=1, out=value[:n_active])
+        np.add(value[:n_active], arrival[:n_active], out=after[:n_active])
+    return value[0]  # the initial state is the only state at depth 0
+
+
+def known_worker_optimum(task: Task, workers: np.ndarray | Sequence, normalised: bool = True,
+                    chunk: int = CHUNK) -> np.ndarray:
+    """Optimal expected (normalised) return for each worker when the worker is known, [W]."""
+    arr = as_workers(workers, task.N)
+    layout = _layout(transition_table(structural_task(task)), task.T)
+    raw = np.zeros(len(arr))
+    for start in range(0, len(arr), chunk):
+        raw[start : start + chunk] = _optimal_block(task, layout, arr[start : start + chunk])
+    return normalised_return(task, raw) if normalised else raw

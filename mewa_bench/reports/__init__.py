@@ -1,0 +1,1 @@
+"""Generated reports: the task-design report of the suites."""
