@@ -1,0 +1,514 @@
+"""Running an agent in a separate process with time and memory limits, or in-process for debugging.
+
+Both runners give the agent's calls one interface (`AgentRunner`) and report every failure as an
+`AgentError`. The isolated runner is a child Python process that loads the agent file itself and
+never gets the env, so the agent cannot reach the hidden worker. Parent and child talk over two
+pipes: requests are pickled, replies are a few plain bytes (an action, "ok" or a JSON error), so the
+parent never unpickles anything the agent's process produced.
+
+Per env step there is one round trip: `step(previous_transition, observation)` calls the agent's
+`observe(previous_transition)` (unless None), then `act(observation)`; the episode's last
+transition goes with `end_episode(final_transition)`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pickle
+import resource
+import select
+import signal
+import struct
+import subprocess
+import sys
+import time
+import traceback
+import weakref
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Callable, Protocol, Self
+
+from gymnasium import spaces
+
+from mewa_bench.protocol.agent import OPTIONAL_METHODS, AgentLoadError, Transition, check_action, load_agent
+
+DEFAULT_TIME_LIMIT = 10.0
+DEFAULT_LOAD_TIME_LIMIT = 60.0
+DEFAULT_MEMORY_LIMIT = 4 << 30
+ERROR_KINDS = ("load", "exception", "invalid_action", "timeout", "memory", "crash")
+
+_TRACEBACK_FRAMES = 3
+_MAX_EXCEPTION_TEXT = 2000
+_CLOSE_GRACE_SECONDS = 2.0
+_EXIT_WAIT_SECONDS = 5.0
+_HEADER = struct.Struct("<I")
+_CHILD_COMMAND = "from mewa_bench.protocol.isolation import _child_main; _child_main()"
+_PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
+
+_STEP, _RESET_TASK, _OBSERVE, _END_EPISODE = range(4)
+_READY, _OK, _ACTION, _ERROR = b"R", b"K", b"A", b"E"
+
+
+class AgentError(RuntimeError):
+    """The agent failed; `kind` is one of ERROR_KINDS and the message says what happened."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+class AgentRunner(Protocol):
+    """The evaluator's handle on an agent: its calls, plus `step` (observe, then act) and `close`.
+
+    After an AgentError the runner is closed and every later call raises the same error again.
+    """
+
+    name: str
+
+    def reset_task(self) -> None:
+        """A new hidden task-worker pair begins."""
+
+    def step(self, transition: Transition | None, observation: Any) -> int:
+        """Observe the previous step's `transition` (None on an episode's first step), then act."""
+        ...
+
+    def act(self, observation: Any) -> int:
+        """The agent's action for `observation`."""
+        ...
+
+    def observe(self, transition: Transition) -> None:
+        """Report one step's outcome to the agent."""
+
+    def end_episode(self, final_transition: Transition | None = None) -> None:
+        """Observe the episode's last `final_transition` (unless None), then end the episode."""
+
+    def close(self) -> None:
+        """Release the agent (stop its process); idempotent."""
+
+    def __enter__(self) -> Self:
+        """The runner itself; leaving the block closes it."""
+        ...
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        """Close the runner."""
+
+
+def make_agent_runner(path: str | Path, observation_space: Any, action_space: spaces.Discrete,
+                      agent_args: dict[str, str] | None = None, checkpoint: str | None = None, *,
+                      isolated: bool = True, time_limit: float | None = DEFAULT_TIME_LIMIT,
+                      load_time_limit: float | None = DEFAULT_LOAD_TIME_LIMIT,
+                      memory_limit: int | None = DEFAULT_MEMORY_LIMIT) -> AgentRunner:
+    """Load the agent file at `path` into an IsolatedAgent, or an InProcessAgent if not `isolated`.
+
+    A file that does not load raises AgentError of kind "load" with AgentLoadError's message. The
+    limits apply to the isolated runner only.
+    """
+    if isolated:
+        return IsolatedAgent(path, observation_space, action_space, agent_args, checkpoint, time_limit=time_limit,
+                             load_time_limit=load_time_limit, memory_limit=memory_limit)
+    try:
+        agent = load_agent(path, observation_space, action_space, agent_args, checkpoint)
+    except AgentLoadError as exc:
+        raise AgentError("load", str(exc)) from exc
+    return InProcessAgent(agent, action_space, name=Path(path).name)
+
+
+class _AgentCalls:
+    """Calls an agent's methods, a missing optional one being a no-op, and turns failures into AgentErrors."""
+
+    def __init__(self, agent: object, num_actions: int, name: str, memory_limit: int | None) -> None:
+        self.name = name
+        self._num_actions = num_actions
+        self._memory_limit = memory_limit
+        self._act: Callable[[Any], object] = agent.act  # type: ignore[attr-defined]
+        self._reset_task, self._observe, self._end_episode = (getattr(agent, method, None) or _no_op
+                                                              for method in OPTIONAL_METHODS)
+
+    def step(self, transition: Transition | None, observation: Any) -> int:
+        """observe(transition) unless None, then act(observation), checked."""
+        method = "observe"
+        try:
+            if transition is not None:
+                self._observe(transition)
+            method = "act"
+            action = self._act(observation)
+        except (Exception, SystemExit) as exc:
+            raise self._failure(method, exc) from None
+        if type(action) is int and 0 <= action < self._num_actions:
+            return action
+        try:
+            return check_action(action, self._num_actions)
+        except ValueError as exc:
+            raise AgentError("invalid_action", f"agent {self.name}: {exc}") from None
+
+    def reset_task(self) -> None:
+        """The agent's reset_task()."""
+        self._call("reset_task", self._reset_task)
+
+    def observe(self, transition: Transition) -> None:
+        """The agent's observe(transition)."""
+        self._call("observe", self._observe, transition)
+
+    def end_episode(self, final_transition: Transition | None) -> None:
+        """observe(final_transition) unless None, then end_episode()."""
+        if final_transition is not None:
+            self._call("observe", self._observe, final_transition)
+        self._call("end_episode", self._end_episode)
+
+    def _call(self, method: str, function: Callable[..., object], *args: Any) -> None:
+        try:
+            function(*args)
+        except (Exception, SystemExit) as exc:
+            raise self._failure(method, exc) from None
+
+    def _failure(self, method: str, exc: BaseException) -> AgentError:
+        """An AgentError naming the exception and where in the agent's code it was raised."""
+        try:
+            detail = str(exc)
+        except Exception:
+            detail = "(its message could not be printed)"
+        if len(detail) > _MAX_EXCEPTION_TEXT:
+            detail = detail[:_MAX_EXCEPTION_TEXT] + "..."
+        message = f"agent {self.name}: {method}() raised {type(exc).__name__}" + (f": {detail}" if detail else "")
+        kind = "exception"
+        if isinstance(exc, MemoryError):
+            kind = "memory"
+            limit = "" if self._memory_limit is None else f" (its limit is {_gib(self._memory_limit)})"
+            message += f"\nthe agent ran out of memory{limit}"
+        frames = [frame for frame in traceback.extract_tb(exc.__traceback__) if frame.filename != __file__]
+        if frames:
+            message += ("\nagent traceback (most recent call last):\n"
+                        + "".join(traceback.format_list(frames[-_TRACEBACK_FRAMES:])).rstrip())
+        return AgentError(kind, message)
+
+
+class _FailureTracking:
+    """Remembers a runner's first AgentError, after which every call raises it again."""
+
+    _failure: AgentError | None = None
+    _closed: bool = False
+
+    def _check_usable(self) -> None:
+        if self._failure is not None:
+            raise AgentError(self._failure.kind, str(self._failure))
+        if self._closed:
+            raise RuntimeError(f"agent {getattr(self, 'name', '')} has been closed")
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the agent; idempotent."""
+        self._closed = True
+
+
+class InProcessAgent(_FailureTracking):
+    """Runs an agent object in this process, for debugging (--in-process).
+
+    Same interface and error types as IsolatedAgent, but no time or memory limit is enforced (a
+    hanging agent hangs the evaluation) and the agent shares this process, env included.
+    """
+
+    def __init__(self, agent: object, action_space: spaces.Discrete, name: str = "agent") -> None:
+        self.agent = agent
+        self.name = name
+        self._calls = _AgentCalls(agent, _num_actions(action_space), name, memory_limit=None)
+
+    def step(self, transition: Transition | None, observation: Any) -> int:
+        """Observe the previous step's `transition` (None on an episode's first step), then act."""
+        self._check_usable()
+        try:
+            return self._calls.step(transition, observation)
+        except AgentError as err:
+            self._failure = err
+            raise
+
+    def act(self, observation: Any) -> int:
+        """The agent's action for `observation`."""
+        return self.step(None, observation)
+
+    def reset_task(self) -> None:
+        """A new hidden task-worker pair begins."""
+        self._guarded(self._calls.reset_task)
+
+    def observe(self, transition: Transition) -> None:
+        """Report one step's outcome to the agent."""
+        self._guarded(self._calls.observe, transition)
+
+    def end_episode(self, final_transition: Transition | None = None) -> None:
+        """Observe the episode's last `final_transition` (unless None), then end the episode."""
+        self._guarded(self._calls.end_episode, final_transition)
+
+    def _guarded(self, call: Callable[..., None], *args: Any) -> None:
+        self._check_usable()
+        try:
+            call(*args)
+        except AgentError as err:
+            self._failure = err
+            raise
+
+
+class IsolatedAgent(_FailureTracking):
+    """Runs the agent file at `path` in a child process with a per-call time limit and a memory limit.
+
+    The child is a fresh Python interpreter that gets only the file's path, the two spaces and the
+    agent args; it loads the agent (AgentError of kind "load" if that fails, with AgentLoadError's
+    message). Each call must return within `time_limit` seconds; loading and the first call after it
+    get `load_time_limit` each (None: no limit). The child's address space is capped at `memory_limit`
+    bytes (RLIMIT_AS; None for no cap). A failing call kills and reaps the child and raises AgentError;
+    the runner is then closed.
+    """
+
+    def __init__(self, path: str | Path, observation_space: Any, action_space: spaces.Discrete,
+                 agent_args: dict[str, str] | None = None, checkpoint: str | None = None, *,
+                 time_limit: float | None = DEFAULT_TIME_LIMIT, load_time_limit: float | None = DEFAULT_LOAD_TIME_LIMIT,
+                 memory_limit: int | None = DEFAULT_MEMORY_LIMIT) -> None:
+        self.name = Path(path).name
+        self._num_actions = _num_actions(action_space)
+        self._time_limit = time_limit
+        self._next_time_limit = load_time_limit
+        self._memory_limit = memory_limit
+        parent_read, child_write = os.pipe()
+        child_read, parent_write = os.pipe()
+        try:
+            self._process = subprocess.Popen(
+                [sys.executable, "-c", _CHILD_COMMAND, str(child_read), str(child_write), str(memory_limit or 0)],
+                pass_fds=(child_read, child_write), stdin=subprocess.DEVNULL, env=_child_environment())
+        except BaseException:
+            for fd in (parent_read, child_write, child_read, parent_write):
+                os.close(fd)
+            raise
+        os.close(child_read)
+        os.close(child_write)
+        self.pid = self._process.pid
+        self._write_fd = parent_write
+        self._reader = _FrameReader(parent_read)
+        self._finalizer = weakref.finalize(self, _stop_process, self._process, (parent_write, parent_read))
+        spec = (str(path), observation_space, action_space, agent_args, checkpoint)
+        self._request_ok(pickle.dumps(spec, pickle.HIGHEST_PROTOCOL), "loading", expected=_READY)
+        self._next_time_limit = load_time_limit
+
+    def step(self, transition: Transition | None, observation: Any) -> int:
+        """Observe the previous step's `transition` (None on an episode's first step), then act."""
+        request = pickle.dumps((_STEP, transition, observation), pickle.HIGHEST_PROTOCOL)
+        reply = self._request(request, "act()" if transition is None else "observe()/act()")
+        if reply[:1] == _ACTION and reply[1:].isdigit():
+            action = int(reply[1:])
+            if action < self._num_actions:
+                return action
+        raise self._fail("crash", f"agent {self.name}: the agent process sent a malformed reply {reply[:40]!r}")
+
+    def act(self, observation: Any) -> int:
+        """The agent's action for `observation`."""
+        return self.step(None, observation)
+
+    def reset_task(self) -> None:
+        """A new hidden task-worker pair begins."""
+        self._request_ok(pickle.dumps((_RESET_TASK,)), "reset_task()")
+
+    def observe(self, transition: Transition) -> None:
+        """Report one step's outcome to the agent."""
+        self._request_ok(pickle.dumps((_OBSERVE, transition), pickle.HIGHEST_PROTOCOL), "observe()")
+
+    def end_episode(self, final_transition: Transition | None = None) -> None:
+        """Observe the episode's last `final_transition` (unless None), then end the episode."""
+        self._request_ok(pickle.dumps((_END_EPISODE, final_transition), pickle.HIGHEST_PROTOCOL), "end_episode()")
+
+    def close(self) -> None:
+        """Let the child exit (it stops at the end of its input), killing it if it does not; idempotent."""
+        self._closed = True
+        self._finalizer()
+
+    def _request_ok(self, request: bytes, call: str, expected: bytes = _OK) -> None:
+        """A request whose reply is just an acknowledgement."""
+        reply = self._request(request, call)
+        if reply != expected:
+            raise self._fail("crash", f"agent {self.name}: the agent process sent a malformed reply {reply[:40]!r}")
+
+    def _request(self, request: bytes, call: str) -> bytes:
+        """Send one request and wait for its reply within the time limit; raise AgentError on failure."""
+        self._check_usable()
+        time_limit = self._next_time_limit
+        try:
+            _write_frame(self._write_fd, request)
+            reply = self._reader.read(None if time_limit is None else time.monotonic() + time_limit)
+        except TimeoutError:
+            raise self._fail("timeout", f"agent {self.name}: {call} did not finish within the time limit "
+                                        f"of {time_limit:g} s; the agent process was killed") from None
+        except BrokenPipeError:
+            reply = None
+        except BaseException:  # e.g. Ctrl-C mid-call: a late reply would put the pipe out of step, so end the child
+            self._process.kill()
+            self.close()
+            raise
+        if reply is None:
+            raise self._fail("crash", f"agent {self.name}: the agent process died during {call} "
+                                      f"({self._exit_description()})")
+        if reply[:1] == _ERROR:
+            kind, message = _decode_error(reply)
+            raise self._fail(kind, message)
+        self._next_time_limit = self._time_limit
+        return reply
+
+    def _fail(self, kind: str, message: str) -> AgentError:
+        """Kill and reap the child, remember the error and return it."""
+        self._process.kill()
+        self.close()
+        self._failure = AgentError(kind, message)
+        return self._failure
+
+    def _exit_description(self) -> str:
+        """How the child ended, waiting briefly for it to finish exiting."""
+        try:
+            code = self._process.wait(_EXIT_WAIT_SECONDS)
+        except subprocess.TimeoutExpired:
+            return "it closed its pipe but kept running"
+        if code >= 0:
+            return f"exit code {code}"
+        name = signal.Signals(-code).name if -code in signal.valid_signals() else str(-code)
+        hint = ", perhaps by the system's out-of-memory killer" if -code == signal.SIGKILL else ""
+        return f"killed by signal {name}{hint}"
+
+
+class _FrameReader:
+    """Reads length-prefixed frames from a pipe, waiting at most until a deadline."""
+
+    def __init__(self, fd: int) -> None:
+        self._fd = fd
+        self._buffer = b""
+        self._poller = select.poll()
+        self._poller.register(fd, select.POLLIN)
+
+    def read(self, deadline: float | None = None) -> bytes | None:
+        """The next frame, or None at the end of the input; TimeoutError past `deadline` (monotonic)."""
+        buffer = self._buffer
+        while True:
+            if len(buffer) >= _HEADER.size:
+                end = _HEADER.size + _HEADER.unpack_from(buffer)[0]
+                if len(buffer) >= end:
+                    self._buffer = buffer[end:]
+                    return buffer[_HEADER.size:end]
+            if deadline is not None:
+                milliseconds = math.ceil((deadline - time.monotonic()) * 1000)
+                if milliseconds <= 0 or not self._poller.poll(milliseconds):
+                    self._buffer = buffer
+                    raise TimeoutError
+            chunk = os.read(self._fd, 1 << 16)
+            if not chunk:
+                return None
+            buffer += chunk
+
+
+def _write_frame(fd: int, payload: bytes) -> None:
+    """Write `payload` with its length in front."""
+    data = memoryview(_HEADER.pack(len(payload)) + payload)
+    while data:
+        data = data[os.write(fd, data):]
+
+
+def _decode_error(reply: bytes) -> tuple[str, str]:
+    """The (kind, message) of an error reply; a malformed one counts as a crash."""
+    try:
+        error = json.loads(reply[1:])
+        kind, message = error["kind"], error["message"]
+    except (ValueError, KeyError, TypeError):
+        return "crash", f"the agent process sent a malformed error reply {reply[:80]!r}"
+    return (kind, str(message)) if kind in ERROR_KINDS else ("crash", str(message))
+
+
+def _stop_process(process: subprocess.Popen, fds: tuple[int, ...]) -> None:
+    """Close our ends of the pipes, which makes an idle child exit; kill it if it has not after a grace period."""
+    for fd in fds:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    try:
+        process.wait(_CLOSE_GRACE_SECONDS)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+def _child_environment() -> dict[str, str]:
+    """The parent's environment, with this copy of mewa_bench first on the child's import path."""
+    environment = dict(os.environ)
+    environment["PYTHONPATH"] = os.pathsep.join(filter(None, [_PACKAGE_ROOT, environment.get("PYTHONPATH")]))
+    return environment
+
+
+def _num_actions(action_space: spaces.Discrete) -> int:
+    """The number of actions of a Discrete(n) space starting at 0."""
+    if not isinstance(action_space, spaces.Discrete) or int(action_space.start) != 0:
+        raise ValueError(f"agents need a Discrete(n) action space starting at 0, got {action_space}")
+    return int(action_space.n)
+
+
+def _gib(num_bytes: int) -> str:
+    return f"{num_bytes / (1 << 30):.3g} GiB"
+
+
+def _no_op(*args: Any) -> None:
+    return None
+
+
+def _child_main() -> None:
+    """The agent process: load the agent, then answer requests until the parent closes the pipe."""
+    read_fd, write_fd, memory_limit = (int(arg) for arg in sys.argv[1:4])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the parent, which then closes us
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    if memory_limit > 0:
+        _limit_address_space(memory_limit)
+    reader = _FrameReader(read_fd)
+    spec = reader.read()
+    if spec is None:
+        return
+    path, observation_space, action_space, agent_args, checkpoint = pickle.loads(spec)
+    sys.argv = sys.argv[:1]  # the pipe numbers are none of the agent's business
+    try:
+        agent = load_agent(path, observation_space, action_space, agent_args, checkpoint)
+    except AgentLoadError as exc:
+        _write_frame(write_fd, _error_reply(AgentError("load", str(exc))))
+        return
+    calls = _AgentCalls(agent, _num_actions(action_space), Path(path).name, memory_limit or None)
+    _write_frame(write_fd, _READY)
+    while (request := reader.read()) is not None:
+        try:
+            reply = _answer(calls, pickle.loads(request))
+        except AgentError as err:
+            reply = _error_reply(err)
+        _write_frame(write_fd, reply)
+
+
+def _answer(calls: _AgentCalls, request: tuple) -> bytes:
+    """Carry out one request on the agent; the reply's bytes."""
+    operation = request[0]
+    if operation == _STEP:
+        return _ACTION + b"%d" % calls.step(request[1], request[2])
+    if operation == _RESET_TASK:
+        calls.reset_task()
+    elif operation == _OBSERVE:
+        calls.observe(request[1])
+    elif operation == _END_EPISODE:
+        calls.end_episode(request[1])
+    else:
+        raise AgentError("crash", f"unknown request {operation!r}")
+    return _OK
+
+
+def _error_reply(err: AgentError) -> bytes:
+    return _ERROR + json.dumps({"kind": err.kind, "message": str(err)}).encode()
+
+
+def _limit_address_space(memory_limit: int) -> None:
+    """Cap this process's address space at `memory_limit` bytes (soft and hard, so the agent cannot lift it)."""
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    limit = memory_limit if hard == resource.RLIM_INFINITY else min(memory_limit, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
