@@ -7,6 +7,7 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -37,6 +38,89 @@ def rollout(episodes: int = typer.Option(3, min=1, help="Episodes to play."),
         table.add_row(str(ep.index), ", ".join(f"{w:.2f}" for w in ep.worker), str(ep.steps),
                       f"{ep.episode_return:.2f}", f"{ep.normalised_return:.3f}")
     console.print(table)
+
+
+@app.command()
+def evaluate(
+    agent: Path = typer.Argument(..., help="Your agent: a .py file with make_agent(observation_space, action_space) or class Agent."),
+    suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1) or path."),
+    seeds: str = typer.Option("3", help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2."),
+    out: Path = typer.Option(None, help="Results file (default: results/<agent>-<suite>.json)."),
+    name: str = typer.Option(None, help="Agent name in the results (default: from the file name)."),
+    agent_arg: list[str] = typer.Option([], "--agent-arg", help="key=value passed to make_agent / Agent (repeatable)."),
+    checkpoint: str = typer.Option(None, help="Checkpoint path passed to the agent as checkpoint=..."),
+    in_process: bool = typer.Option(False, "--in-process", help="Run the agent in this process (debugging; no limits)."),
+    time_limit: float = typer.Option(10.0, help="Seconds per agent call (0 = none)."),
+    memory_limit: str = typer.Option("4G", help="Agent address-space limit, e.g. 4G, 512M, or none."),
+    privileged: bool = typer.Option(False, help="Tell the agent the hidden pair (reference agents only; never ranked)."),
+    jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
+    resume: bool = typer.Option(False, help="Continue an interrupted run in the same results file."),
+    pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
+) -> None:
+    """Score an agent on a frozen suite under the 10-episode adaptation protocol and write a results file."""
+    from mewa_bench.protocol.runner import EvalConfig, EvaluationError, evaluate as run
+    from mewa_bench.results_tables import results_table
+
+    config = EvalConfig(
+        agent_path=agent, suite=suite, seeds=_parse_seeds(seeds), out=out, name=name,
+        agent_args=_parse_agent_args(agent_arg), checkpoint=checkpoint, isolated=not in_process,
+        time_limit=time_limit or None, memory_limit=_parse_bytes(memory_limit), privileged=privileged,
+        jobs=jobs, resume=resume, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None)
+    with Progress(SpinnerColumn(), TextColumn("[progress.description]{task.description}"), BarColumn(),
+                  MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task(f"{agent.name} on {suite}", total=None)
+        try:
+            results, path = run(config, progress=lambda done, total: bar.update(task, completed=done, total=total))
+        except EvaluationError as e:
+            bar.stop()
+            console.print(f"[red]error:[/red] {e}")
+            console.print("Units finished before the error are kept in the results file; fix the agent and "
+                          "re-run with --resume to continue.")
+            raise typer.Exit(1) from None
+        except ValueError as e:  # bad suite, results file or option
+            bar.stop()
+            console.print(f"[red]error:[/red] {e}")
+            raise typer.Exit(1) from None
+    console.print(results_table(results))
+    console.print(f"results: [bold]{path}[/bold]" + ("" if results["complete"] else " (partial run: not rankable)"))
+
+
+def _parse_ints(text: str, option: str) -> list[int]:
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"expected integers separated by commas, got {text!r}", param_hint=option) from None
+
+
+def _parse_seeds(text: str) -> tuple[int, ...]:
+    values = _parse_ints(text, "--seeds")
+    if "," not in text and len(values) == 1:
+        if values[0] < 1:
+            raise typer.BadParameter("need at least one seed", param_hint="--seeds")
+        return tuple(range(values[0]))
+    return tuple(values)
+
+
+def _parse_agent_args(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise typer.BadParameter(f"expected key=value, got {item!r}", param_hint="--agent-arg")
+        out[key] = value
+    return out
+
+
+def _parse_bytes(text: str) -> int | None:
+    if text.lower() in ("none", "0", ""):
+        return None
+    units = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
+    try:
+        if text[-1].upper() in units:
+            return int(float(text[:-1]) * units[text[-1].upper()])
+        return int(text)
+    except ValueError:
+        raise typer.BadParameter(f"expected a size like 4G, 512M or none, got {text!r}", param_hint="--memory-limit") from None
 
 
 suites_app = typer.Typer(no_args_is_help=True, help="List, show and verify the versioned suites.")

@@ -67,8 +67,8 @@ class AgentRunner(Protocol):
 
     name: str
 
-    def reset_task(self) -> None:
-        """A new hidden task-worker pair begins."""
+    def reset_task(self, hidden: dict | None = None) -> None:
+        """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only)."""
 
     def step(self, transition: Transition | None, observation: Any) -> int:
         """Observe the previous step's `transition` (None on an episode's first step), then act."""
@@ -144,9 +144,12 @@ class _AgentCalls:
         except ValueError as exc:
             raise AgentError("invalid_action", f"agent {self.name}: {exc}") from None
 
-    def reset_task(self) -> None:
-        """The agent's reset_task()."""
-        self._call("reset_task", self._reset_task)
+    def reset_task(self, hidden: dict | None = None) -> None:
+        """The agent's reset_task(), or reset_task(hidden) in a privileged run."""
+        if hidden is None:
+            self._call("reset_task", self._reset_task)
+        else:
+            self._call("reset_task", self._reset_task, hidden)
 
     def observe(self, transition: Transition) -> None:
         """The agent's observe(transition)."""
@@ -234,9 +237,9 @@ class InProcessAgent(_FailureTracking):
         """The agent's action for `observation`."""
         return self.step(None, observation)
 
-    def reset_task(self) -> None:
-        """A new hidden task-worker pair begins."""
-        self._guarded(self._calls.reset_task)
+    def reset_task(self, hidden: dict | None = None) -> None:
+        """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only)."""
+        self._guarded(self._calls.reset_task, hidden)
 
     def observe(self, transition: Transition) -> None:
         """Report one step's outcome to the agent."""
@@ -309,9 +312,9 @@ class IsolatedAgent(_FailureTracking):
         """The agent's action for `observation`."""
         return self.step(None, observation)
 
-    def reset_task(self) -> None:
-        """A new hidden task-worker pair begins."""
-        self._request_ok(pickle.dumps((_RESET_TASK,)), "reset_task()")
+    def reset_task(self, hidden: dict | None = None) -> None:
+        """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only)."""
+        self._request_ok(pickle.dumps((_RESET_TASK, hidden)), "reset_task()")
 
     def observe(self, transition: Transition) -> None:
         """Report one step's outcome to the agent."""
@@ -493,7 +496,7 @@ def _answer(calls: _AgentCalls, request: tuple) -> bytes:
     if operation == _STEP:
         return _ACTION + b"%d" % calls.step(request[1], request[2])
     if operation == _RESET_TASK:
-        calls.reset_task()
+        calls.reset_task(request[1])
     elif operation == _OBSERVE:
         calls.observe(request[1])
     elif operation == _END_EPISODE:

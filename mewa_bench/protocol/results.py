@@ -1,0 +1,88 @@
+"""The results file of an evaluation run (JSON, schema-versioned; SPEC section 6).
+
+Layout (schema 1):
+- `schema_version`, `protocol_version`, `complete` (false while the run is in progress);
+- `agent`: name, file, sha256, privileged, agent_args, checkpoint;
+- `suite`: name, version, sha256; `env`: id, version, mode; `package_version`;
+- `seeds`, `episodes_per_pair`, `isolation` (isolated, time_limit, memory_limit);
+- `units`: one per (pair, seed), sorted: pair, seed, task, env_seeds, returns, normalised_returns,
+  lengths, scores (normalised return / the pair's max-expected baseline);
+- `scores` (when complete): curve s_1..s_K, mean, adaptability, skill (mean + 95% bootstrap CI),
+  units, bootstrap settings; `baselines`: the suite's reference lines on the score scale and skill;
+- `timing` (started, finished, wall_time, per-unit seconds) and `machine`: the only fields that
+  differ between two runs of the same agent with the same seeds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from mewa_bench.design.suites import write_atomic
+
+SCHEMA_VERSION = 1
+PROTOCOL_VERSION = 1
+VOLATILE_FIELDS = ("timing", "machine")
+_REQUIRED = ("schema_version", "protocol_version", "complete", "agent", "suite", "env", "package_version",
+             "seeds", "episodes_per_pair", "units")
+_UNIT_FIELDS = ("pair", "seed", "task", "env_seeds", "returns", "normalised_returns", "lengths", "scores")
+
+
+class ResultsError(ValueError):
+    """A results file is malformed or does not fit the suite or protocol it claims."""
+
+
+def unit_key(unit: dict[str, Any]) -> tuple[int, int]:
+    """(pair, seed): the identity and sort order of a unit."""
+    return int(unit["pair"]), int(unit["seed"])
+
+
+def write_results(path: Path, results: dict[str, Any]) -> None:
+    """Write a results file atomically (units sorted), so a good file is never half-written."""
+    results = {**results, "units": sorted(results["units"], key=unit_key)}
+    write_atomic(path, json.dumps(results, indent=1, sort_keys=True, allow_nan=False) + "\n")
+
+
+def read_results(path: Path) -> dict[str, Any]:
+    """Read and structurally validate a results file; errors name the file and the field."""
+    try:
+        results = json.loads(Path(path).read_text())
+    except OSError as e:
+        raise ResultsError(f"{path}: cannot read results file: {e.strerror}") from None
+    except json.JSONDecodeError as e:
+        raise ResultsError(f"{path}: not valid JSON: {e}") from None
+    validate_structure(results, str(path))
+    return results
+
+
+def validate_structure(results: Any, where: str) -> None:
+    """Check the schema of a results dict (not its agreement with a suite)."""
+    if not isinstance(results, dict):
+        raise ResultsError(f"{where}: a results file must be a JSON object")
+    missing = [k for k in _REQUIRED if k not in results]
+    if missing:
+        raise ResultsError(f"{where}: missing field(s) {', '.join(missing)}")
+    if results["schema_version"] != SCHEMA_VERSION:
+        raise ResultsError(f"{where}: schema_version {results['schema_version']!r} is not supported (expected {SCHEMA_VERSION})")
+    if results["protocol_version"] != PROTOCOL_VERSION:
+        raise ResultsError(f"{where}: protocol_version {results['protocol_version']!r} is not {PROTOCOL_VERSION}")
+    for key in ("name", "sha256"):
+        if key not in results["suite"]:
+            raise ResultsError(f"{where}: suite.{key} is missing")
+    k = results["episodes_per_pair"]
+    for i, unit in enumerate(results["units"]):
+        absent = [f for f in _UNIT_FIELDS if f not in unit]
+        if absent:
+            raise ResultsError(f"{where}: units[{i}] is missing {', '.join(absent)}")
+        for f in ("env_seeds", "returns", "normalised_returns", "lengths", "scores"):
+            if len(unit[f]) != k:
+                raise ResultsError(f"{where}: units[{i}] (pair {unit['pair']}, seed {unit['seed']}): {f} has "
+                                   f"{len(unit[f])} entries, expected {k}")
+    if results["complete"] and "scores" not in results:
+        raise ResultsError(f"{where}: a complete results file must have scores")
+
+
+def stable_view(results: dict[str, Any]) -> dict[str, Any]:
+    """The results without the fields that legitimately differ between identical runs."""
+    return {k: v for k, v in results.items() if k not in VOLATILE_FIELDS}

@@ -1,0 +1,148 @@
+"""The evaluation protocol: scoring by hand, determinism, resume, and clear errors for bad agents."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mewa_bench.design.suites import load_suite
+from mewa_bench.protocol.results import read_results, stable_view
+from mewa_bench.protocol.runner import EvalConfig, EvaluationError, env_seed, evaluate
+from mewa_bench.protocol.scoring import bootstrap_means, episode_scores, score_run, skill_of
+
+AGENTS = Path(__file__).parent / "agents"
+FAULTY = AGENTS / "delayed_fault_agent.py"
+
+
+# -- scoring, by hand ------------------------------------------------------------------------------
+def test_scores_by_hand() -> None:
+    normalised = np.array([[0.4, 0.5, 0.6], [0.2, 0.2, 0.5]])
+    best = np.array([0.8, 0.5])
+    s = episode_scores(normalised, best)
+    np.testing.assert_allclose(s, [[0.5, 0.625, 0.75], [0.4, 0.4, 1.0]])
+    result = score_run(normalised, best, rts_score=0.5, samples=500)
+    assert [e.mean for e in result.curve] == pytest.approx([0.45, 0.5125, 0.875])
+    assert result.mean.mean == pytest.approx((0.625 + 0.6) / 2)
+    assert result.adaptability.mean == pytest.approx(((0.75 - 0.5) + (1.0 - 0.4)) / 2)
+    assert result.skill.mean == pytest.approx((0.6125 - 0.5) / 0.5)
+    assert skill_of(0.5, 0.5) == 0.0 and skill_of(1.0, 0.5) == 1.0
+
+
+def test_bootstrap_ci_is_seeded_and_calibrated() -> None:
+    const = score_run(np.full((20, 10), 0.3), np.full(20, 0.6), rts_score=0.2)
+    assert const.mean.low == const.mean.high == pytest.approx(0.5)
+    rng = np.random.default_rng(0)
+    data = rng.normal(0.7, 0.1, size=(400, 10))
+    a = score_run(data, np.ones(400), 0.5, seed=1)
+    b = score_run(data, np.ones(400), 0.5, seed=1)
+    assert a == b
+    # Percentile bootstrap of a mean ~ normal interval: half-width ~ 1.96 SE.
+    se = data.mean(axis=1).std(ddof=1) / np.sqrt(400)
+    assert (a.mean.high - a.mean.low) / 2 == pytest.approx(1.96 * se, rel=0.15)
+    boot = bootstrap_means(data.mean(axis=1)[:, None], seed=1)
+    assert boot.shape == (2000, 1)
+
+
+def test_env_seeds_are_deterministic_and_distinct() -> None:
+    h = load_suite("narrow-v1").sha256
+    seeds = {env_seed(h, p, s, k) for p in range(16) for s in range(3) for k in range(10)}
+    assert len(seeds) == 480 and env_seed(h, 1, 2, 3) == env_seed(h, 1, 2, 3)
+
+
+# -- runs ------------------------------------------------------------------------------------------
+def run(tmp_path: Path, agent: Path, name: str = "r.json", **kw) -> tuple[dict, Path]:
+    config = EvalConfig(agent_path=agent, out=tmp_path / name, **kw)
+    return evaluate(config)
+
+
+def test_same_agent_same_seeds_identical_results(tmp_path: Path) -> None:
+    args = dict(agent_args={"fault": "none"}, seeds=(0, 1), pairs=(0, 5))
+    a, _ = run(tmp_path, FAULTY, "a.json", **args)
+    b, _ = run(tmp_path, FAULTY, "b.json", jobs=2, **args)
+    c, _ = run(tmp_path, FAULTY, "c.json", isolated=False, **args)
+    assert stable_view(a) == stable_view(b)
+    assert {k for k in stable_view(a) if stable_view(a)[k] != stable_view(c)[k]} == {"isolation"}
+    assert not a["complete"]  # a subset of pairs is never a rankable run
+    assert [(u["pair"], u["seed"]) for u in a["units"]] == [(0, 0), (0, 1), (5, 0), (5, 1)]
+
+
+def test_full_run_is_complete_and_valid(tmp_path: Path) -> None:
+    results, path = run(tmp_path, FAULTY, agent_args={"fault": "none"}, seeds=(0,))
+    assert results["complete"] and read_results(path)["scores"]["units"] == 16
+    suite = load_suite("narrow-v1")
+    assert results["suite"]["sha256"] == suite.sha256
+    unit = results["units"][3]
+    assert unit["scores"] == pytest.approx(np.array(unit["normalised_returns"]) / suite.pairs[3].max_expected)
+    assert all(1 <= n <= 100 for u in results["units"] for n in u["lengths"])
+
+
+@pytest.mark.parametrize("fault, kind, text", [
+    ("raise", "exception", "ZeroDivisionError: the agent divided by zero"),
+    ("invalid", "invalid_action", "returned 7"),
+    ("hang", "timeout", "time limit"),
+    ("memory", None, "memory"),
+])
+def test_bad_agent_errors_say_where_and_keep_results(tmp_path: Path, fault: str, kind: str | None, text: str) -> None:
+    out = tmp_path / "r.json"
+    config = EvalConfig(agent_path=FAULTY, out=out, seeds=(0,), time_limit=1.0, memory_limit=1 << 30,
+                        agent_args={"fault": fault, "after_units": "2", "at_step": "4"})
+    start = time.perf_counter()
+    with pytest.raises(EvaluationError) as err:
+        evaluate(config)
+    assert time.perf_counter() - start < 30
+    message = str(err.value)
+    assert str(FAULTY) in message and "pair 2, seed 0, episode 1, step 4" in message, message
+    assert text.lower() in message.lower(), message
+    if kind:
+        assert err.value.kind == kind
+    kept = read_results(out)  # the two finished units are on disk, intact
+    assert not kept["complete"] and [(u["pair"], u["seed"]) for u in kept["units"]] == [(0, 0), (1, 0)]
+
+
+def test_broken_agent_files(tmp_path: Path) -> None:
+    bad = tmp_path / "syntax_agent.py"
+    bad.write_text("def make_agent(observation_space, action_space):\n    return 1 +\n")
+    with pytest.raises(EvaluationError, match=r"syntax_agent\.py.*line 2"):
+        run(tmp_path, bad)
+    empty = tmp_path / "empty_agent.py"
+    empty.write_text("x = 1\n")
+    with pytest.raises(EvaluationError, match=r"empty_agent\.py.*make_agent"):
+        run(tmp_path, empty, "e.json")
+    with pytest.raises(EvaluationError, match="does not exist"):
+        run(tmp_path, tmp_path / "missing.py", "m.json")
+
+
+def test_resume_continues_without_redoing_or_losing_units(tmp_path: Path) -> None:
+    flag = tmp_path / "fail-now"
+    flag.write_text("")
+    args = dict(seeds=(0, 1), agent_args={"fault": "raise", "after_units": "5", "at_step": "0", "flag": str(flag)})
+    with pytest.raises(EvaluationError):
+        run(tmp_path, FAULTY, **args)
+    partial = read_results(tmp_path / "r.json")
+    assert len(partial["units"]) == 5
+    flag.unlink()
+    with pytest.raises(ValueError, match="--resume"):
+        run(tmp_path, FAULTY, **args)
+    resumed, _ = run(tmp_path, FAULTY, resume=True, **args)
+    assert resumed["complete"] and len(resumed["units"]) == 32
+    assert resumed["units"][:5] == partial["units"]  # finished units kept as they were
+    other = dict(args, seeds=(0,))
+    with pytest.raises(ValueError, match="cannot resume: seeds differ"):
+        run(tmp_path, FAULTY, resume=True, **other)
+
+
+def test_results_file_is_valid_json_after_every_unit(tmp_path: Path) -> None:
+    seen = []
+
+    def progress(done: int, total: int) -> None:
+        path = tmp_path / "r.json"
+        if path.exists():
+            seen.append(len(json.loads(path.read_text())["units"]))
+
+    evaluate(EvalConfig(agent_path=FAULTY, out=tmp_path / "r.json", seeds=(0,), pairs=(0, 1, 2),
+                        agent_args={"fault": "none"}), progress=progress)
+    assert seen[-3:] == [1, 2, 3] or seen[-4:-1] == [1, 2, 3]
