@@ -85,6 +85,21 @@ def evaluate(
     console.print(f"results: [bold]{path}[/bold]" + ("" if results["complete"] else " (partial run: not rankable)"))
 
 
+@app.command()
+def leaderboard(submissions: Path = typer.Option(Path("submissions"), help="Folder of submissions/<name>/ results."),
+                out: Path = typer.Option(Path("leaderboards"), help="Where to write the tables, plots and page.")) -> None:
+    """Validate every results file in submissions/ and write leaderboards/<suite>.md, .csv, .png and index.html."""
+    from mewa_bench.leaderboard import build_leaderboards
+
+    report = build_leaderboards(submissions, out)
+    for path, reason in report.invalid:
+        console.print(f"[yellow]skipped[/yellow] {path}: {reason}")
+    for path in report.written:
+        console.print(f"wrote {path}")
+    if report.invalid:
+        console.print(f"[yellow]{len(report.invalid)} results file(s) were invalid and skipped[/yellow]")
+
+
 def _parse_ints(text: str, option: str) -> list[int]:
     try:
         return [int(v) for v in text.split(",") if v.strip()]

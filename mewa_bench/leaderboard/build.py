@@ -1,0 +1,70 @@
+"""`mewa-bench leaderboard`: validate every results file under `submissions/` and write the leaderboards.
+
+Per shipped suite: `<suite>.md`, `<suite>.csv` and `<suite>.png`; plus one `index.html`. Invalid
+results files are skipped and reported with the reason, never silently. The output depends only on
+the inputs (sorted iteration, no current timestamps), and every file is written atomically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from mewa_bench.design.suites import SHIPPED_SUITES, load_suite, write_atomic
+from mewa_bench.leaderboard.board import Board, make_board
+from mewa_bench.leaderboard.plot import plot_curves
+from mewa_bench.leaderboard.render import csv_text, index_html, markdown
+from mewa_bench.leaderboard.validate import Entry, InvalidResults, SuiteCache, find_results_files, load_entry
+
+
+@dataclass(frozen=True)
+class LeaderboardReport:
+    """What a build did: files written, valid entries per suite (table order), skipped files with reasons."""
+
+    written: tuple[Path, ...]
+    entries: dict[str, tuple[Entry, ...]]
+    invalid: tuple[tuple[Path, str], ...]
+
+
+def collect(submissions_dir: Path) -> tuple[dict[str, list[Entry]], list[tuple[Path, str]]]:
+    """Valid entries grouped by suite, and (file, reason) for every results file that was rejected."""
+    if not submissions_dir.is_dir():
+        raise NotADirectoryError(f"{submissions_dir}: no such submissions folder")
+    suites = SuiteCache()
+    entries: dict[str, list[Entry]] = {name: [] for name in SHIPPED_SUITES}
+    invalid: list[tuple[Path, str]] = []
+    for path in find_results_files(submissions_dir):
+        try:
+            entry = load_entry(path, suites)
+        except InvalidResults as e:
+            invalid.append((path, str(e)))
+        else:
+            entries[entry.suite].append(entry)
+    return entries, invalid
+
+
+def write_board(board: Board, out_dir: Path) -> tuple[Path, Path, Path]:
+    """Write one suite's Markdown, CSV and PNG."""
+    name = board.suite.name
+    md, csv_path, png = out_dir / f"{name}.md", out_dir / f"{name}.csv", out_dir / f"{name}.png"
+    write_atomic(md, markdown(board, png.name))
+    write_atomic(csv_path, csv_text(board))
+    plot_curves(board, png)
+    return md, csv_path, png
+
+
+def build_leaderboards(submissions_dir: Path, out_dir: Path) -> LeaderboardReport:
+    """Validate `submissions_dir/*/` results files and write every shipped suite's leaderboard to `out_dir`."""
+    submissions_dir, out_dir = Path(submissions_dir), Path(out_dir)
+    entries, invalid = collect(submissions_dir)
+    boards = [make_board(load_suite(name), entries[name], submissions_dir.name) for name in SHIPPED_SUITES]
+    written: list[Path] = []
+    files: dict[str, tuple[str, str, str]] = {}
+    for board in boards:
+        paths = write_board(board, out_dir)
+        written += paths
+        files[board.suite.name] = tuple(p.name for p in paths)
+    index = out_dir / "index.html"
+    write_atomic(index, index_html(boards, files))
+    written.append(index)
+    return LeaderboardReport(tuple(written), {b.suite.name: b.entries for b in boards}, tuple(invalid))

@@ -1,0 +1,64 @@
+"""The adaptation-curve figure of a suite's leaderboard (like the paper's Fig. 4)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mewa_bench.leaderboard.board import Board, reference_rows
+from mewa_bench.protocol.runner import EPISODES_PER_PAIR
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+_REFERENCE_GREYS = ("#000000", "#444444", "#777777", "#999999", "#bbbbbb")
+
+
+def plot_curves(board: Board, path: Path) -> None:
+    """s_1..s_K per agent with its 95% CI band, the suite's reference lines dashed; written atomically."""
+    # Figure + Agg canvas directly: no pyplot, so the caller's global backend and state are untouched.
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 5), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    colors = colormaps["tab10"].colors
+    for i, entry in enumerate(board.entries):
+        curve = entry.scores.curve
+        x = np.arange(1, len(curve) + 1)
+        color = colors[i % len(colors)]
+        label = f"{entry.agent} (privileged)" if entry.privileged else entry.agent
+        ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=color, ls=":" if entry.privileged else "-",
+                label=label)
+        ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=color, alpha=0.2, lw=0)
+    for row, grey in zip(reference_rows(board.suite), _REFERENCE_GREYS):
+        ax.axhline(row.mean, ls="--", lw=1, color=grey, label=f"{row.name} (exact)")
+    k = len(board.entries[0].scores.curve) if board.entries else EPISODES_PER_PAIR
+    ax.set_xticks(range(1, k + 1))
+    ax.set_xlim(0.7, k + 0.3)
+    ax.set_xlabel("episode k with the same hidden worker")
+    ax.set_ylabel("score s_k (1 = max expected)")
+    ax.set_title(f"{board.suite.name}: adaptation curves (mean and 95% CI over pairs x seeds)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    save_png(fig, path)
+
+
+def save_png(fig: Figure, path: Path) -> None:
+    """Save a figure as PNG via a temporary sibling and rename, without timestamps or versions."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, format="png", bbox_inches="tight", metadata={"Software": None})
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

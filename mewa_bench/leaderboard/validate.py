@@ -1,0 +1,203 @@
+"""Finding results files in `submissions/*/` and checking them against the shipped suites (SPEC section 7).
+
+A results file goes on a leaderboard only if it is well-formed, complete, made on a shipped suite
+with that suite's exact hash, under this protocol, covers every (pair, seed) unit, and its stored
+scores agree with its units. The scores shown are recomputed from the units, never copied.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from mewa_bench.design.suites import SHIPPED_SUITES, Suite, SuiteError, load_suite
+from mewa_bench.protocol.results import PROTOCOL_VERSION, ResultsError, read_results
+from mewa_bench.protocol.runner import EPISODES_PER_PAIR
+from mewa_bench.protocol.scoring import Scores, score_run
+
+TOLERANCE = 1e-9
+_SHOWN = 5  # how many missing or unexpected units a reason lists
+
+
+class InvalidResults(Exception):
+    """A results file that cannot go on a leaderboard; the message says why."""
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One valid results file: an agent's row on a suite's leaderboard, scores recomputed from its units."""
+
+    suite: str
+    agent: str
+    path: Path
+    privileged: bool
+    scores: Scores
+    seeds: tuple[int, ...]
+    date: str
+    package_version: str
+    agent_sha256: str
+
+
+def find_results_files(submissions_dir: Path) -> Iterator[Path]:
+    """Candidate results files directly inside each `submissions/<name>/`, in sorted order."""
+    folders = sorted(p for p in submissions_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    for folder in folders:
+        for path in sorted(folder.glob("*.json")):
+            if not path.name.startswith(".") and (path.name.startswith("results-") or _looks_like_results(path)):
+                yield path
+
+
+def _looks_like_results(path: Path) -> bool:
+    """A JSON file with `schema_version`, or one that does not parse (a truncated results file is reported)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return True
+    return isinstance(data, dict) and "schema_version" in data
+
+
+class SuiteCache:
+    """Shipped suites, each loaded and verified once."""
+
+    def __init__(self) -> None:
+        self._suites: dict[str, Suite] = {}
+
+    def get(self, name: Any) -> Suite:
+        """The shipped suite `name`; only shipped names, never a path taken from a results file."""
+        if not isinstance(name, str) or name not in SHIPPED_SUITES:
+            raise InvalidResults(f"suite {name!r} is not a shipped suite ({', '.join(SHIPPED_SUITES)})")
+        if name not in self._suites:
+            try:
+                self._suites[name] = load_suite(name)
+            except SuiteError as e:
+                raise InvalidResults(f"the shipped suite {name} cannot be loaded: {e}") from None
+        return self._suites[name]
+
+
+def load_entry(path: Path, suites: SuiteCache) -> Entry:
+    """Read and check one results file; raises InvalidResults with the reason."""
+    try:
+        return _check(path, read_results(path), suites)
+    except ResultsError as e:
+        raise InvalidResults(_without_prefix(str(e), path)) from None
+    except (AttributeError, KeyError, IndexError, TypeError, ValueError) as e:
+        # read_results checks which fields exist, not their types: a wrong type surfaces here
+        raise InvalidResults(f"malformed results ({type(e).__name__}: {e})") from None
+
+
+def _without_prefix(message: str, path: Path) -> str:
+    """ResultsError messages start with the file name, which the report already gives."""
+    prefix = f"{path}: "
+    return message[len(prefix):] if message.startswith(prefix) else message
+
+
+def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
+    """All leaderboard checks of a structurally valid results dict, then the entry."""
+    if results["complete"] is not True:
+        raise InvalidResults("the run is incomplete (`complete` is not true)")
+    suite = suites.get(results["suite"]["name"])
+    if results["suite"]["sha256"] != suite.sha256:
+        raise InvalidResults(f"suite sha256 {results['suite']['sha256']} is not the shipped {suite.name}'s "
+                             f"{suite.sha256}: the run used a different or modified suite")
+    if results["protocol_version"] != PROTOCOL_VERSION:
+        raise InvalidResults(f"protocol_version {results['protocol_version']!r} is not {PROTOCOL_VERSION}")
+    if results["episodes_per_pair"] != EPISODES_PER_PAIR:
+        raise InvalidResults(f"episodes_per_pair is {results['episodes_per_pair']!r}; the protocol plays "
+                             f"{EPISODES_PER_PAIR} per pair")
+    seeds = _seeds(results["seeds"])
+    units = _covering_units(results["units"], suite, seeds)
+    scores = _verified_scores(units, suite, results["scores"])
+    agent = results["agent"]
+    return Entry(suite=suite.name, agent=str(agent["name"]), path=path, privileged=agent.get("privileged") is True,
+                 scores=scores, seeds=seeds, date=finished_date(results),
+                 package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""))
+
+
+def _seeds(seeds: Any) -> tuple[int, ...]:
+    """The run's seeds: a non-empty list of distinct integers."""
+    if not isinstance(seeds, list) or not seeds:
+        raise InvalidResults("`seeds` must be a non-empty list")
+    if not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
+        raise InvalidResults(f"`seeds` must be integers, got {seeds!r}")
+    if len(set(seeds)) != len(seeds):
+        raise InvalidResults(f"`seeds` has repeats: {seeds!r}")
+    return tuple(seeds)
+
+
+def _covering_units(units: list[dict[str, Any]], suite: Suite, seeds: tuple[int, ...]) -> list[dict[str, Any]]:
+    """The units sorted by (pair, seed), if they are exactly every pair of the suite times every seed."""
+    keys = [_key(u) for u in units]
+    repeated = sorted(k for k, n in Counter(keys).items() if n > 1)
+    if repeated:
+        raise InvalidResults(f"repeated units (pair, seed): {_listing(repeated)}")
+    expected = {(p, s) for p in range(len(suite.pairs)) for s in seeds}
+    missing = sorted(expected - set(keys))
+    if missing:
+        raise InvalidResults(f"missing {len(missing)} of {len(expected)} units (pair, seed): {_listing(missing)}")
+    unexpected = sorted(set(keys) - expected)
+    if unexpected:
+        raise InvalidResults(f"units (pair, seed) not in {suite.name} x seeds {list(seeds)}: {_listing(unexpected)}")
+    for key, unit in zip(keys, units):
+        if unit["task"] != suite.pairs[key[0]].task_index:
+            raise InvalidResults(f"unit (pair {key[0]}, seed {key[1]}) names task {unit['task']!r}, the pair's task "
+                                 f"is {suite.pairs[key[0]].task_index}")
+    return [u for _, u in sorted(zip(keys, units), key=lambda ku: ku[0])]
+
+
+def _key(unit: dict[str, Any]) -> tuple[int, int]:
+    """(pair, seed) of a unit, insisting on integers (int() would accept 1.5 or "1")."""
+    pair, seed = unit["pair"], unit["seed"]
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (pair, seed)):
+        raise InvalidResults(f"unit pair and seed must be integers, got pair {pair!r}, seed {seed!r}")
+    return pair, seed
+
+
+def _listing(keys: list[tuple[int, int]]) -> str:
+    """The first few (pair, seed) keys, and how many more."""
+    shown = ", ".join(f"({p}, {s})" for p, s in keys[:_SHOWN])
+    return shown + (f", ... ({len(keys)} in all)" if len(keys) > _SHOWN else "")
+
+
+def _verified_scores(units: list[dict[str, Any]], suite: Suite, stored: dict[str, Any]) -> Scores:
+    """Recompute the scores from the units and reject files whose stored numbers disagree."""
+    normalised = np.array([u["normalised_returns"] for u in units], dtype=np.float64)
+    unit_scores = np.array([u["scores"] for u in units], dtype=np.float64)
+    best = np.array([suite.pairs[u["pair"]].max_expected for u in units])
+    if not (np.isfinite(normalised).all() and np.isfinite(unit_scores).all()):
+        raise InvalidResults("units contain non-finite returns or scores")
+    off = np.argwhere(np.abs(unit_scores - normalised / best[:, None]) > TOLERANCE)
+    if len(off):
+        u, k = off[0]
+        raise InvalidResults(f"unit (pair {units[u]['pair']}, seed {units[u]['seed']}) episode {k + 1}: score is not "
+                             f"normalised return / the pair's max-expected baseline")
+    headline = float(unit_scores.mean())
+    _agree("mean score", stored["mean"]["mean"], headline)
+    scores = score_run(normalised, best, suite.summary["score"]["random_task_specific"])
+    curve = stored["curve"]
+    if len(curve) != len(scores.curve):
+        raise InvalidResults(f"stored curve has {len(curve)} points, expected {len(scores.curve)}")
+    for k, (point, estimate) in enumerate(zip(curve, scores.curve)):
+        _agree(f"s_{k + 1}", point["mean"], estimate.mean)
+    _agree("adaptability", stored["adaptability"]["mean"], scores.adaptability.mean)
+    return scores
+
+
+def _agree(what: str, stored: Any, recomputed: float) -> None:
+    """A stored point estimate must match its recomputation from the units (tampering check)."""
+    if not isinstance(stored, (int, float)) or isinstance(stored, bool) or not abs(stored - recomputed) <= TOLERANCE:
+        raise InvalidResults(f"stored {what} {stored!r} disagrees with {recomputed!r} recomputed from the units: "
+                             f"the file was edited after the run")
+
+
+def finished_date(results: dict[str, Any]) -> str:
+    """The date part (YYYY-MM-DD) of `timing.finished`, or "" when absent."""
+    timing = results.get("timing")
+    finished = timing.get("finished") if isinstance(timing, dict) else None
+    match = re.match(r"\d{4}-\d{2}-\d{2}", finished) if isinstance(finished, str) else None
+    return match.group(0) if match else ""

@@ -1,0 +1,189 @@
+"""Leaderboards from synthetic results files: ranking, reference rows, outputs, and rejected files."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mewa_bench.design.suites import Suite, load_suite
+from mewa_bench.leaderboard import LeaderboardReport, build_leaderboards
+from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, write_results
+from mewa_bench.protocol.scoring import score_run
+
+SEEDS = [0, 1, 2]
+K = 10
+# name -> (score level at episode 1, gain by episode 10, privileged)
+AGENTS = {"steady": (0.90, 0.0, False), "learner": (0.88, 0.08, False), "weak": (0.70, 0.01, False),
+          "oracle": (1.0, 0.0, True)}
+
+
+@pytest.fixture(scope="module")
+def narrow() -> Suite:
+    return load_suite("narrow-v1")
+
+
+def make_results(suite: Suite, name: str, start: float, gain: float, privileged: bool = False,
+                 seed: int = 0) -> dict:
+    """A complete results dict in the schema of protocol/results.py, scores computed as the runner does."""
+    rng = np.random.default_rng(seed)
+    units = []
+    for pair in suite.pairs:
+        for s in SEEDS:
+            curve = start + gain * np.arange(K) / (K - 1) + rng.normal(0.0, 0.01, K)
+            normalised = (curve * pair.max_expected).tolist()
+            units.append({"pair": pair.index, "seed": s, "task": pair.task_index, "env_seeds": list(range(K)),
+                          "returns": normalised, "normalised_returns": normalised, "lengths": [20] * K,
+                          "scores": [v / pair.max_expected for v in normalised]})
+    normalised = np.array([u["normalised_returns"] for u in units])
+    best = np.array([suite.pairs[u["pair"]].max_expected for u in units])
+    scores = score_run(normalised, best, suite.summary["score"]["random_task_specific"])
+    return {
+        "schema_version": SCHEMA_VERSION, "protocol_version": PROTOCOL_VERSION, "complete": True,
+        "agent": {"name": name, "file": f"submissions/{name}/agent.py", "sha256": f"{seed:02d}" + "ab" * 31,
+                  "privileged": privileged, "agent_args": {}, "checkpoint": None},
+        "suite": {"name": suite.name, "version": suite.content["version"], "sha256": suite.sha256},
+        "env": {"id": suite.content["env_id"], "version": "v0", "mode": "vector"},
+        "package_version": "0.1.0", "seeds": SEEDS, "episodes_per_pair": K, "pairs": None,
+        "isolation": {"isolated": True, "time_limit": 10.0, "memory_limit": None},
+        "units": units, "scores": {**scores.to_dict(), "bootstrap": {"seed": 1, "samples": 2000}},
+        "baselines": {"score": suite.summary["score"], "skill": suite.summary["skill"]},
+        "timing": {"started": "2025-03-01T10:00:00+00:00", "finished": "2025-03-02T11:30:00+00:00",
+                   "wall_time": 12.5, "units": {}},
+        "machine": {"platform": "test"},
+    }
+
+
+def invalid_variants(suite: Suite) -> dict[str, tuple[object, str]]:
+    """File name -> (content, a fragment the skip reason must contain)."""
+    base = make_results(suite, "bad", 0.8, 0.0, seed=9)
+    wrong_hash = {**base, "suite": {**base["suite"], "sha256": "0" * 64}}
+    incomplete = {**base, "complete": False}
+    missing = {**base, "units": [u for u in base["units"] if u["pair"] != 3]}
+    future = {**base, "schema_version": 99}
+    scores = dict(base["scores"])
+    scores["mean"] = {**scores["mean"], "mean": scores["mean"]["mean"] + 0.01}
+    tampered = {**base, "scores": scores}
+    odd_types = {**base, "units": [5] + base["units"][1:]}
+    return {"results-odd-types.json": (odd_types, "malformed"), "results-wrong-hash.json": (wrong_hash, "sha256"), "results-incomplete.json": (incomplete, "incomplete"),
+            "results-missing.json": (missing, "missing 3 of 48 units"),
+            "results-schema99.json": (future, "schema_version 99"),
+            "results-tampered.json": (tampered, "mean score"), "results-garbage.json": ("{not json", "not valid JSON")}
+
+
+@pytest.fixture(scope="module")
+def built(narrow: Suite, tmp_path_factory: pytest.TempPathFactory) -> tuple[LeaderboardReport, Path, Path]:
+    """Submissions with four valid agents and seven broken files; the leaderboards built from them."""
+    root = tmp_path_factory.mktemp("lb")
+    subs = root / "submissions"
+    for i, (name, (start, gain, privileged)) in enumerate(AGENTS.items()):
+        write_results(subs / name / f"results-{name}-narrow-v1.json", make_results(narrow, name, start, gain,
+                                                                                    privileged, seed=i))
+    (subs / "steady" / "notes.json").write_text('{"not": "a results file"}')  # ignored: no schema_version
+    for file, (content, _) in invalid_variants(narrow).items():
+        path = subs / "bad" / file
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(content if isinstance(content, str) else json.dumps(content))
+    out = root / "leaderboards"
+    return build_leaderboards(subs, out), subs, out
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_ranking_order_and_privileged_unranked(built) -> None:
+    report, _, _ = built
+    entries = report.entries["narrow-v1"]
+    assert [e.agent for e in entries] == ["oracle", "learner", "steady", "weak"]
+    rows = [r for r in read_csv(built[2] / "narrow-v1.csv") if r["kind"] != "reference"]
+    assert [(r["rank"], r["agent"]) for r in rows] == [("", "oracle"), ("1", "learner"), ("2", "steady"),
+                                                       ("3", "weak")]
+    md = (built[2] / "narrow-v1.md").read_text()
+    assert "| — | oracle (privileged) |" in md
+    assert "| 1 | learner |" in md and "| 3 | weak |" in md
+    assert "not ranked" in md
+    assert report.entries["wide-v1"] == ()
+
+
+def test_csv_numbers_match_results(built, narrow: Suite) -> None:
+    _, subs, out = built
+    results = json.loads((subs / "learner" / "results-learner-narrow-v1.json").read_text())
+    row = next(r for r in read_csv(out / "narrow-v1.csv") if r["agent"] == "learner")
+    sc = results["scores"]
+    assert float(row["mean_score"]) == pytest.approx(sc["mean"]["mean"], abs=1e-12)
+    assert float(row["mean_score"]) == pytest.approx(np.mean([u["scores"] for u in results["units"]]), abs=1e-12)
+    assert float(row["mean_score_low"]) == pytest.approx(sc["mean"]["low"], abs=1e-12)
+    assert float(row["mean_score_high"]) == pytest.approx(sc["mean"]["high"], abs=1e-12)
+    assert float(row["s_1"]) == pytest.approx(sc["curve"][0]["mean"], abs=1e-12)
+    assert float(row["s_10"]) == pytest.approx(sc["curve"][-1]["mean"], abs=1e-12)
+    assert float(row["adaptability"]) == pytest.approx(sc["adaptability"]["mean"], abs=1e-12)
+    assert float(row["adaptability"]) == pytest.approx(0.08, abs=0.01)
+    assert float(row["skill"]) == pytest.approx(sc["skill"]["mean"], abs=1e-12)
+    assert row["seeds"] == "3" and row["date"] == "2025-03-02" and row["package_version"] == "0.1.0"
+    assert row["agent_sha256"] == results["agent"]["sha256"]
+
+
+def test_reference_rows_have_the_suites_values(built, narrow: Suite) -> None:
+    out = built[2]
+    refs = {r["agent"]: r for r in read_csv(out / "narrow-v1.csv") if r["kind"] == "reference"}
+    keys = {"random": "random", "random task-specific": "random_task_specific", "best fixed policy": "best_fixed",
+            "max expected": "max_expected", "known-worker optimum": "known_worker_optimum"}
+    assert set(refs) == set(keys)
+    for label, key in keys.items():
+        assert refs[label]["rank"] == ""
+        assert float(refs[label]["mean_score"]) == narrow.summary["score"][key]
+        assert float(refs[label]["skill"]) == narrow.summary["skill"][key]
+    assert float(refs["max expected"]["mean_score"]) == 1.0
+    md = (out / "narrow-v1.md").read_text()
+    assert "exact expected values" in md and narrow.sha256 in md
+    assert f"{narrow.summary['non_adaptive_gap']:.4f}" in md
+    assert f"| *random task-specific (reference)* | {narrow.summary['score']['random_task_specific']:.4f} |" in md
+
+
+def test_png_and_html(built) -> None:
+    import matplotlib.image
+
+    report, _, out = built
+    for suite in ("narrow-v1", "wide-v1"):
+        image = matplotlib.image.imread(out / f"{suite}.png")
+        assert image.ndim == 3 and image.shape[0] > 100 and image.shape[1] > 100
+    page = (out / "index.html").read_text()
+    for name in AGENTS:
+        assert name in page
+    assert 'src="narrow-v1.png"' in page and 'src="wide-v1.png"' in page
+    assert "http" not in page and "<script" not in page
+    assert {p.name for p in report.written} == {"narrow-v1.md", "narrow-v1.csv", "narrow-v1.png", "wide-v1.md",
+                                                "wide-v1.csv", "wide-v1.png", "index.html"}
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
+
+
+def test_invalid_files_reported_and_skipped(built, narrow: Suite) -> None:
+    report, subs, out = built
+    reasons = {path.name: reason for path, reason in report.invalid}
+    expected = invalid_variants(narrow)
+    assert set(reasons) == set(expected)
+    for file, (_, fragment) in expected.items():
+        assert fragment in reasons[file], (file, reasons[file])
+    assert all(e.agent != "bad" for e in report.entries["narrow-v1"])
+    assert "bad" not in (out / "narrow-v1.csv").read_text()
+
+
+def test_tampered_curve_point_is_rejected(narrow: Suite, tmp_path: Path) -> None:
+    results = make_results(narrow, "sneaky", 0.8, 0.0)
+    results["scores"]["curve"][-1]["mean"] += 0.05  # a better s_10 than its units show
+    write_results(tmp_path / "subs" / "sneaky" / "results-x.json", results)
+    report = build_leaderboards(tmp_path / "subs", tmp_path / "out")
+    assert report.entries["narrow-v1"] == ()
+    assert "s_10" in report.invalid[0][1]
+
+
+def test_output_is_deterministic(built, tmp_path: Path) -> None:
+    _, subs, out = built
+    again = build_leaderboards(subs, tmp_path / "again")
+    for path in again.written:
+        assert path.read_bytes() == (out / path.name).read_bytes(), path.name
