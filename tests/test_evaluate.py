@@ -146,3 +146,16 @@ def test_results_file_is_valid_json_after_every_unit(tmp_path: Path) -> None:
     evaluate(EvalConfig(agent_path=FAULTY, out=tmp_path / "r.json", seeds=(0,), pairs=(0, 1, 2),
                         agent_args={"fault": "none"}), progress=progress)
     assert seen[-3:] == [1, 2, 3] or seen[-4:-1] == [1, 2, 3]
+
+
+def test_malformed_results_file_is_a_clear_error(tmp_path: Path) -> None:
+    from mewa_bench.protocol.results import ResultsError
+
+    results, path = run(tmp_path, FAULTY, agent_args={"fault": "none"}, seeds=(0,), pairs=(0,))
+    results["units"][0] = 5
+    path.write_text(json.dumps(results))
+    with pytest.raises(ResultsError, match=r"r\.json: malformed results"):
+        read_results(path)
+    path.write_text("{not json")
+    with pytest.raises(ResultsError, match=r"r\.json: not valid JSON"):
+        run(tmp_path, FAULTY, agent_args={"fault": "none"}, seeds=(0,), pairs=(0,), resume=True)

@@ -58,6 +58,13 @@ def read_results(path: Path) -> dict[str, Any]:
 
 def validate_structure(results: Any, where: str) -> None:
     """Check the schema of a results dict (not its agreement with a suite)."""
+    try:
+        _validate(results, where)
+    except (TypeError, KeyError, AttributeError) as e:  # a field of the wrong type
+        raise ResultsError(f"{where}: malformed results ({type(e).__name__}: {e})") from None
+
+
+def _validate(results: Any, where: str) -> None:
     if not isinstance(results, dict):
         raise ResultsError(f"{where}: a results file must be a JSON object")
     missing = [k for k in _REQUIRED if k not in results]
