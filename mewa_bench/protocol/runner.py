@@ -13,11 +13,11 @@ import os
 import platform
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LI
 from mewa_bench.protocol.results import (PROTOCOL_VERSION, SCHEMA_VERSION, ResultsError, read_results, unit_key,
                                          write_results)
 from mewa_bench.protocol.scoring import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, CONFIDENCE, score_run
+from mewa_bench.protocol.trajectory import EpisodeRecord, RunInfo, StepRecord, TrajectorySink, UnitRecord
 
 EPISODES_PER_PAIR = 10
 DEFAULT_SEEDS = (0, 1, 2)
@@ -61,6 +62,7 @@ class EvalConfig:
     jobs: int = 1
     resume: bool = False
     pairs: tuple[int, ...] | None = None  # a subset of pairs, for quick checks (the run is then partial)
+    collect_trajectories: bool = False  # set by `evaluate` when sinks are attached
 
 
 def agent_name(path: Path) -> str:
@@ -86,8 +88,8 @@ def hidden_pair(suite: Suite, pair: int) -> dict[str, Any]:
 
 
 def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: int, episodes: int,
-              privileged: bool, agent_file: str) -> dict[str, Any]:
-    """One (pair, seed) unit: reset_task, then `episodes` episodes; the unit's record."""
+              privileged: bool, agent_file: str, collect: bool = False) -> tuple[dict[str, Any], UnitRecord | None]:
+    """One (pair, seed) unit: reset_task, then `episodes` episodes; the unit's record and, if `collect`, its steps."""
     p = suite.pairs[pair]
     task, worker = suite.tasks[p.task_index], p.worker.w
     where = f"agent {agent_file}, pair {pair}, seed {seed}"
@@ -95,11 +97,12 @@ def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: 
         runner.reset_task(hidden_pair(suite, pair) if privileged else None)
     except AgentError as e:
         raise EvaluationError(f"{where}, before episode 1 (reset_task): {e}", e.kind) from None
-    seeds, returns, normalised, lengths = [], [], [], []
+    best = p.max_expected
+    seeds, returns, normalised, lengths, played = [], [], [], [], []
     for k in range(episodes):
         s = env_seed(suite.sha256, pair, seed, k)
         obs, _ = env.reset(seed=s, options={"task": task, "worker": worker})
-        transition, step, done = None, 0, False
+        transition, step, done, steps = None, 0, False, []
         while not done:
             try:
                 action = runner.step(transition, obs)
@@ -107,6 +110,9 @@ def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: 
                 raise EvaluationError(f"{where}, episode {k + 1}, step {step}: {e}", e.kind) from None
             next_obs, reward, terminated, truncated, info = env.step(action)
             transition = Transition(obs, action, float(reward), next_obs, terminated, truncated)
+            if collect:
+                steps.append(StepRecord(step, obs, action, float(reward), next_obs, terminated, truncated,
+                                        info["progress"], info["events"]))
             obs, step, done = next_obs, step + 1, terminated or truncated
         try:
             runner.end_episode(transition)
@@ -116,9 +122,13 @@ def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: 
         returns.append(info["episode_return"])
         normalised.append(info["normalised_return"])
         lengths.append(step)
-    best = p.max_expected
-    return {"pair": pair, "seed": seed, "task": p.task_index, "env_seeds": seeds, "returns": returns,
+        if collect:
+            played.append(EpisodeRecord(k, s, tuple(steps), info["episode_return"], info["normalised_return"],
+                                        info["normalised_return"] / best))
+    unit = {"pair": pair, "seed": seed, "task": p.task_index, "env_seeds": seeds, "returns": returns,
             "normalised_returns": normalised, "lengths": lengths, "scores": [v / best for v in normalised]}
+    record = UnitRecord(pair, seed, p.task_index, task.to_dict(), worker, tuple(played)) if collect else None
+    return unit, record
 
 
 class _UnitPlayer:
@@ -129,7 +139,7 @@ class _UnitPlayer:
         self.env = MewaEnv(task=suite.tasks[0], worker=suite.pairs[0].worker.w)
         self.runner: AgentRunner | None = None
 
-    def play(self, pair: int, seed: int) -> tuple[dict[str, Any], float]:
+    def play(self, pair: int, seed: int) -> tuple[dict[str, Any], float, UnitRecord | None]:
         c = self.config
         if self.runner is None:
             try:
@@ -140,11 +150,12 @@ class _UnitPlayer:
                 raise EvaluationError(f"agent {c.agent_path}: {e}", e.kind) from None
         start = time.perf_counter()
         try:
-            unit = play_unit(self.runner, self.env, self.suite, pair, seed, c.episodes, c.privileged, str(c.agent_path))
+            unit, record = play_unit(self.runner, self.env, self.suite, pair, seed, c.episodes, c.privileged,
+                                     str(c.agent_path), collect=c.collect_trajectories)
         except EvaluationError:
             self.close()
             raise
-        return unit, time.perf_counter() - start
+        return unit, time.perf_counter() - start, record
 
     def close(self) -> None:
         if self.runner is not None:
@@ -155,7 +166,7 @@ class _UnitPlayer:
 _WORKER_PLAYER: _UnitPlayer | None = None
 
 
-def _worker_play(config: EvalConfig, pair: int, seed: int) -> tuple[dict[str, Any], float]:
+def _worker_play(config: EvalConfig, pair: int, seed: int) -> tuple[dict[str, Any], float, UnitRecord | None]:
     """Entry point of a --jobs worker process: reuse one player per process."""
     global _WORKER_PLAYER
     if _WORKER_PLAYER is None:
@@ -218,8 +229,24 @@ def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
 Progress = Callable[[int, int], None]
 
 
-def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None) -> tuple[dict[str, Any], Path]:
-    """Run (or resume) an evaluation; returns the final results and where they were written."""
+def run_info(config: EvalConfig, suite: Suite, results: dict[str, Any]) -> RunInfo:
+    """What sinks record about the run."""
+    return RunInfo(agent=results["agent"]["name"], agent_sha256=results["agent"]["sha256"], suite=suite.name,
+                   suite_sha256=suite.sha256, seeds=tuple(config.seeds), episodes_per_pair=config.episodes,
+                   env_id=results["env"]["id"], env_version=results["env"]["version"],
+                   package_version=results["package_version"], mode=results["env"]["mode"],
+                   extra={"privileged": config.privileged})
+
+
+def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
+             sinks: Sequence[TrajectorySink] = ()) -> tuple[dict[str, Any], Path]:
+    """Run (or resume) an evaluation; returns the final results and where they were written.
+
+    Each sink (MCAP / Rerun log, dataset recorder) gets every unit played in this call as soon as it
+    finishes, and is closed at the end, also when the run fails or is interrupted.
+    """
+    if sinks and not config.collect_trajectories:
+        config = replace(config, collect_trajectories=True)
     if not config.agent_path.exists():
         raise EvaluationError(f"agent file {config.agent_path} does not exist", "load")
     suite = load_suite(config.suite)
@@ -239,29 +266,38 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None) 
     progress(total - len(todo), total)
     start = time.perf_counter()
 
-    def record(unit: dict[str, Any], seconds: float) -> None:
+    def record(unit: dict[str, Any], seconds: float, trajectory: UnitRecord | None) -> None:
         results["units"].append(unit)
         results["timing"]["units"][f"{unit['pair']}/{unit['seed']}"] = round(seconds, 4)
         write_results(out, results)  # after every unit: nothing finished is ever lost
+        for sink in sinks:
+            sink.add_unit(trajectory)
         progress(len(results["units"]), total)
 
-    if config.jobs <= 1 or len(todo) <= 1:
-        player = _UnitPlayer(config, suite)
-        try:
-            for pair, seed in todo:
-                record(*player.play(pair, seed))
-        finally:
-            player.close()
-    else:
-        with ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn")) as pool:
-            futures = [pool.submit(_worker_play, config, pair, seed) for pair, seed in todo]
+    info = run_info(config, suite, results)
+    for sink in sinks:
+        sink.start(info)
+    try:
+        if config.jobs <= 1 or len(todo) <= 1:
+            player = _UnitPlayer(config, suite)
             try:
-                for future in as_completed(futures):
-                    record(*future.result())
-            except BaseException:
-                for f in futures:
-                    f.cancel()
-                raise
+                for pair, seed in todo:
+                    record(*player.play(pair, seed))
+            finally:
+                player.close()
+        else:
+            with ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn")) as pool:
+                futures = [pool.submit(_worker_play, config, pair, seed) for pair, seed in todo]
+                try:
+                    for future in as_completed(futures):
+                        record(*future.result())
+                except BaseException:
+                    for f in futures:
+                        f.cancel()
+                    raise
+    finally:
+        for sink in sinks:
+            sink.close()
     finish(results, suite)
     timing = results["timing"]
     timing["finished"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
