@@ -159,3 +159,25 @@ def test_malformed_results_file_is_a_clear_error(tmp_path: Path) -> None:
     path.write_text("{not json")
     with pytest.raises(ResultsError, match=r"r\.json: not valid JSON"):
         run(tmp_path, FAULTY, agent_args={"fault": "none"}, seeds=(0,), pairs=(0,), resume=True)
+
+
+SUBMISSIONS = Path(__file__).resolve().parents[1] / "submissions"
+
+
+@pytest.mark.parametrize("agent, reference, privileged", [
+    ("oracle-t-optimal", "max_expected", True),
+    ("random", "random", False),
+    ("random-task-specific", "random_task_specific", False),
+])
+def test_reference_agents_score_their_exact_baseline_within_ci(tmp_path: Path, agent: str, reference: str,
+                                                               privileged: bool) -> None:
+    results, _ = run(tmp_path, SUBMISSIONS / agent / "agent.py", isolated=False, privileged=privileged)
+    mean = results["scores"]["mean"]
+    expected = load_suite("narrow-v1").summary["score"][reference]
+    assert mean["low"] <= expected <= mean["high"], (agent, mean, expected)
+    assert results["agent"]["privileged"] == privileged
+
+
+def test_oracle_refuses_to_run_unprivileged(tmp_path: Path) -> None:
+    with pytest.raises(EvaluationError, match="privileged"):
+        run(tmp_path, SUBMISSIONS / "oracle-t-optimal" / "agent.py", isolated=False, pairs=(0,))
