@@ -187,3 +187,15 @@ def test_output_is_deterministic(built, tmp_path: Path) -> None:
     again = build_leaderboards(subs, tmp_path / "again")
     for path in again.written:
         assert path.read_bytes() == (out / path.name).read_bytes(), path.name
+
+
+def test_committed_leaderboards_are_up_to_date_with_the_submissions(tmp_path: Path) -> None:
+    repo = Path(__file__).resolve().parents[1]
+    report = build_leaderboards(repo / "submissions", tmp_path)
+    assert report.invalid == ()
+    for suite in ("narrow-v1", "wide-v1"):
+        names = {e.agent for e in report.entries[suite]}
+        assert names == {"random", "random-task-specific", "bayes-adaptive", "oracle-t-optimal"}
+        for ext in ("md", "csv"):
+            assert (tmp_path / f"{suite}.{ext}").read_text() == (repo / "leaderboards" / f"{suite}.{ext}").read_text()
+    assert (tmp_path / "index.html").read_text() == (repo / "leaderboards" / "index.html").read_text()
