@@ -56,9 +56,11 @@ def evaluate(
     jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in the same results file."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
+    log: str = typer.Option(None, help="Trajectory logs to write: mcap, rerun or mcap,rerun."),
+    log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files (named after the results file)."),
 ) -> None:
     """Score an agent on a frozen suite under the 10-episode adaptation protocol and write a results file."""
-    from mewa_bench.protocol.runner import EvalConfig, EvaluationError, evaluate as run
+    from mewa_bench.protocol.runner import EvalConfig
     from mewa_bench.results_tables import results_table
 
     config = EvalConfig(
@@ -66,23 +68,57 @@ def evaluate(
         agent_args=_parse_agent_args(agent_arg), checkpoint=checkpoint, isolated=not in_process,
         time_limit=time_limit or None, memory_limit=_parse_bytes(memory_limit), privileged=privileged,
         jobs=jobs, resume=resume, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None)
+    results, path, logs = _run_with_progress(config, log, log_dir, f"{agent.name} on {suite}")
+    console.print(results_table(results))
+    console.print(f"results: [bold]{path}[/bold]" + ("" if results["complete"] else " (partial run: not rankable)"))
+    for p in logs:
+        console.print(f"log: {p}")
+
+
+def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra_sinks=()):
+    """Run `evaluate` with a progress bar, log sinks and clear errors; (results, results path, log paths)."""
+    from mewa_bench.logs.files import make_log_sinks, parse_log_kinds
+    from mewa_bench.protocol.runner import EvaluationError, default_results_path, evaluate
+    from mewa_bench.design.suites import load_suite
+
+    try:
+        kinds = parse_log_kinds(log)
+        stem = (config.out or default_results_path(config, load_suite(config.suite))).stem
+        sinks = [*make_log_sinks(kinds, log_dir, stem), *extra_sinks]
+    except ValueError as e:
+        console.print(f"[red]error:[/red] {e}")
+        raise typer.Exit(1) from None
     with Progress(SpinnerColumn(), TextColumn("[progress.description]{task.description}"), BarColumn(),
                   MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True) as bar:
-        task = bar.add_task(f"{agent.name} on {suite}", total=None)
+        task = bar.add_task(label, total=None)
         try:
-            results, path = run(config, progress=lambda done, total: bar.update(task, completed=done, total=total))
+            results, path = evaluate(config, progress=lambda done, total: bar.update(task, completed=done, total=total),
+                                     sinks=sinks)
         except EvaluationError as e:
             bar.stop()
             console.print(f"[red]error:[/red] {e}")
-            console.print("Units finished before the error are kept in the results file; fix the agent and "
-                          "re-run with --resume to continue.")
+            console.print("Units finished before the error are kept in the results file (and logs); fix the "
+                          "agent and re-run with --resume to continue.")
             raise typer.Exit(1) from None
         except ValueError as e:  # bad suite, results file or option
             bar.stop()
             console.print(f"[red]error:[/red] {e}")
             raise typer.Exit(1) from None
-    console.print(results_table(results))
-    console.print(f"results: [bold]{path}[/bold]" + ("" if results["complete"] else " (partial run: not rankable)"))
+    return results, path, [s.path for s in sinks if hasattr(s, "path")]
+
+
+@app.command()
+def view(file: Path = typer.Argument(..., help="A Rerun recording (.rrd) written with --log rerun."),
+         web: bool = typer.Option(False, help="Serve the web viewer on 127.0.0.1 instead of opening a window."),
+         port: int = typer.Option(None, help="Port of the web viewer.")) -> None:
+    """Open a Rerun recording in the Rerun viewer."""
+    from mewa_bench.logs.view import ViewerError, open_viewer
+
+    try:
+        raise typer.Exit(open_viewer(file, web=web, web_port=port))
+    except ViewerError as e:
+        console.print(f"[red]error:[/red] {e}")
+        raise typer.Exit(1) from None
 
 
 @app.command()

@@ -29,7 +29,7 @@ from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LI
 from mewa_bench.protocol.results import (PROTOCOL_VERSION, SCHEMA_VERSION, ResultsError, read_results, unit_key,
                                          write_results)
 from mewa_bench.protocol.scoring import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, CONFIDENCE, score_run
-from mewa_bench.protocol.trajectory import EpisodeRecord, RunInfo, StepRecord, TrajectorySink, UnitRecord
+from mewa_bench.protocol.trajectory import BackgroundSinks, EpisodeRecord, RunInfo, StepRecord, TrajectorySink, UnitRecord
 
 EPISODES_PER_PAIR = 10
 DEFAULT_SEEDS = (0, 1, 2)
@@ -270,13 +270,11 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
         results["units"].append(unit)
         results["timing"]["units"][f"{unit['pair']}/{unit['seed']}"] = round(seconds, 4)
         write_results(out, results)  # after every unit: nothing finished is ever lost
-        for sink in sinks:
-            sink.add_unit(trajectory)
+        writers.add_unit(trajectory)
         progress(len(results["units"]), total)
 
-    info = run_info(config, suite, results)
-    for sink in sinks:
-        sink.start(info)
+    writers = BackgroundSinks(sinks)
+    writers.start(run_info(config, suite, results))
     try:
         if config.jobs <= 1 or len(todo) <= 1:
             player = _UnitPlayer(config, suite)
@@ -296,8 +294,7 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
                         f.cancel()
                     raise
     finally:
-        for sink in sinks:
-            sink.close()
+        writers.close()
     finish(results, suite)
     timing = results["timing"]
     timing["finished"] = datetime.now(timezone.utc).isoformat(timespec="seconds")

@@ -7,8 +7,10 @@ run progresses and never see a half-played unit.
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, Sequence
 
 import numpy as np
 
@@ -81,3 +83,63 @@ class TrajectorySink(Protocol):
     def add_unit(self, unit: UnitRecord) -> None: ...
 
     def close(self) -> None: ...
+
+
+_STOP = object()
+
+
+class BackgroundSinks:
+    """Feeds sinks from a background thread, in unit order, so writing logs overlaps playing.
+
+    The runner spends most of an isolated run waiting for the agent process (with the GIL
+    released), which is when this thread writes. `close()` drains every queued unit, closes every
+    sink, and re-raises the first error a sink raised.
+    """
+
+    def __init__(self, sinks: Sequence[TrajectorySink]) -> None:
+        self.sinks = list(sinks)
+        self._queue: queue.Queue = queue.Queue(maxsize=8)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._work, name="mewa-sinks", daemon=True)
+        self._started = False
+
+    def start(self, run: RunInfo) -> None:
+        """Start every sink (in the caller's thread, so a bad path fails at once), then the writer thread."""
+        for sink in self.sinks:
+            sink.start(run)
+        self._thread.start()
+        self._started = True
+
+    def add_unit(self, unit: UnitRecord | None) -> None:
+        """Queue a finished unit for every sink (None: trajectories were not collected, nothing to do)."""
+        if unit is None or not self.sinks:
+            return
+        if self._error is not None:
+            raise RuntimeError(f"a log/dataset sink failed: {self._error}") from self._error
+        self._queue.put(unit)
+
+    def _work(self) -> None:
+        while (unit := self._queue.get()) is not _STOP:
+            if self._error is None:
+                try:
+                    for sink in self.sinks:
+                        sink.add_unit(unit)
+                except BaseException as e:  # reported by add_unit / close in the runner's thread
+                    self._error = e
+
+    def close(self) -> None:
+        """Write what is queued, close every sink, and raise a sink's error if there was one."""
+        if self._started:
+            self._queue.put(_STOP)
+            self._thread.join()
+            self._started = False
+        errors = []
+        for sink in self.sinks:
+            try:
+                sink.close()
+            except BaseException as e:
+                errors.append(e)
+        if self._error is not None:
+            raise RuntimeError(f"a log/dataset sink failed: {self._error}") from self._error
+        if errors:
+            raise errors[0]
