@@ -7,7 +7,8 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.progress import (BarColumn, DownloadColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
+                           TimeElapsedColumn, TransferSpeedColumn)
 from rich.table import Table
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -105,6 +106,46 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
             console.print(f"[red]error:[/red] {e}")
             raise typer.Exit(1) from None
     return results, path, [s.path for s in sinks if hasattr(s, "path")]
+
+
+@app.command()
+def record(
+    policy: str = typer.Option(..., help="A baseline policy (random, random-task-specific, max-expected, "
+                                         "toptimal(rho1=R1,rho2=R2,q=Q)) or an agent .py file."),
+    out: Path = typer.Option(..., help="Dataset folder to create (LeRobot v3.0; must not exist)."),
+    suite: str = typer.Option("narrow-v1", help="Suite name or path."),
+    seeds: str = typer.Option("1", help="Number of seeds (0..n-1) or a comma list."),
+    repo_id: str = typer.Option(None, help="LeRobot repo id of the dataset (default: mewa/<folder name>)."),
+    fps: int = typer.Option(10, help="Frames per second stored in the dataset."),
+    results: Path = typer.Option(None, help="Results file of the rollout (default: <out>.results.json)."),
+    agent_arg: list[str] = typer.Option([], "--agent-arg", help="key=value passed to the agent (repeatable)."),
+    privileged: bool = typer.Option(False, help="Tell an agent file the hidden pair (e.g. the oracle)."),
+    jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
+    log: str = typer.Option(None, help="Also write trajectory logs: mcap, rerun or mcap,rerun."),
+    log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files."),
+    pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3."),
+) -> None:
+    """Roll out a baseline policy or an agent under the evaluation protocol and record a LeRobot dataset."""
+    from mewa_bench.datasets.lerobot_recorder import LeRobotSink
+    from mewa_bench.protocol import policy_agent
+    from mewa_bench.protocol.runner import EvalConfig
+
+    if out.exists():
+        console.print(f"[red]error:[/red] {out} already exists (LeRobot creates the dataset folder itself)")
+        raise typer.Exit(1)
+    is_file = policy.endswith(".py")
+    args = _parse_agent_args(agent_arg)
+    config = EvalConfig(
+        agent_path=Path(policy) if is_file else policy_agent.AGENT_FILE, suite=suite, seeds=_parse_seeds(seeds),
+        out=results or out.with_name(out.name + ".results.json"), name=Path(policy).stem if is_file else policy,
+        agent_args=args if is_file else {"policy": policy, **args}, isolated=is_file,
+        privileged=privileged or not is_file, jobs=jobs, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None)
+    sink = LeRobotSink(out, repo_id or f"mewa/{out.name}", fps=fps)
+    results_data, path, logs = _run_with_progress(config, log, log_dir, f"recording {policy} on {suite}", [sink])
+    console.print(f"dataset: [bold]{out}[/bold] ({sink.frames:,} frames, {len(results_data['units']) * config.episodes} "
+                  f"episodes, {sink.frames_per_second:,.0f} frames/s); results: {path}")
+    for p in logs:
+        console.print(f"log: {p}")
 
 
 @app.command()
@@ -245,6 +286,95 @@ def suites_report(out: Path = typer.Option(Path("docs"), "--out", help="Folder f
 
     for path in write_report(out):
         console.print(f"wrote {path}")
+
+
+datasets_app = typer.Typer(no_args_is_help=True, help="List, inspect, download and pack offline datasets.")
+app.add_typer(datasets_app, name="datasets")
+CATALOG_HELP = "Dataset catalog (default: datasets/index.json of the checkout, or $MEWA_DATASETS_CATALOG)."
+
+
+@datasets_app.command("list")
+def datasets_list(catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
+    """The datasets in the catalog."""
+    from mewa_bench.datasets.catalog import load_catalog
+
+    content = _or_exit(load_catalog, catalog)
+    table = Table("name", "version", "suite", "policy", "episodes", "frames", "size", "source")
+    for e in content["datasets"]:
+        size = f"{e['size'] / 1e6:.1f} MB" if "size" in e else ""
+        table.add_row(e["name"], e["version"], e["suite"], e["policy"], f"{e['episodes']:,}", f"{e['frames']:,}",
+                      size, e.get("hf_repo_id") or e["url"].rsplit("/", 1)[-1])
+    console.print(table)
+
+
+@datasets_app.command("info")
+def datasets_info(name: str = typer.Argument(..., help="Dataset name (or name@version)."),
+                  catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
+    """Everything the catalog says about one dataset."""
+    from mewa_bench.datasets.catalog import dataset_info, load_catalog
+
+    entry = _or_exit(lambda: dataset_info(load_catalog(catalog), name))
+    table = Table(show_header=False, box=None)
+    for key, value in entry.items():
+        table.add_row(f"[bold]{key}[/bold]", str(value))
+    console.print(table)
+
+
+@datasets_app.command("download")
+def datasets_download(source: str = typer.Argument(..., help="Catalog name, archive URL, or Hugging Face Hub repo id."),
+                      dir: Path = typer.Option(Path("mewa-datasets"), "--dir", help="Where datasets are unpacked."),
+                      sha256: str = typer.Option(None, help="Expected sha256 of an archive URL not in the catalog."),
+                      catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
+    """Download, verify (size, sha256, episode and frame counts) and unpack a dataset atomically."""
+    from mewa_bench.datasets.catalog import DatasetError, load_catalog
+    from mewa_bench.datasets.downloader import download
+
+    if catalog is not None:
+        content = _or_exit(load_catalog, catalog)
+    else:
+        try:
+            content = load_catalog()
+        except DatasetError:
+            content = None  # no catalog here: URLs and repo ids still work
+    with Progress(TextColumn("{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task(f"downloading {source}", total=None)
+        result = _or_exit(lambda: download(source, content, dir, sha256=sha256,
+                                           progress=lambda done, total: bar.update(task, completed=done, total=total)))
+    check = "verified" if result.verified else "[yellow]not verified (no known sha256)[/yellow]"
+    console.print(f"[green]ok[/green] {result.name} -> [bold]{result.path}[/bold] ({check})")
+    console.print(f"load it: LeRobotDataset('mewa/{result.name}', root='{result.path}')")
+
+
+@datasets_app.command("pack")
+def datasets_pack(dataset: Path = typer.Argument(..., help="A recorded dataset folder."),
+                  name: str = typer.Option(..., help="Catalog name."), version: str = typer.Option("1.0.0"),
+                  suite: str = typer.Option(..., help="Suite it was recorded on."),
+                  policy: str = typer.Option(..., help="Policy or agent that generated it."),
+                  out: Path = typer.Option(Path("datasets"), help="Folder for the archive."),
+                  url_base: str = typer.Option(None, help="Public URL prefix of the archive (default: path relative "
+                                                          "to the catalog when the archive sits beside it)."),
+                  catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
+    """Archive a dataset deterministically and add its entry (size, sha256, counts, URL) to the catalog."""
+    from mewa_bench.datasets.catalog import add_to_catalog, default_catalog_path
+    from mewa_bench.datasets.pack import pack_dataset
+
+    catalog_path = catalog or default_catalog_path()
+    entry = _or_exit(lambda: pack_dataset(dataset, out, name, version, suite, policy, url_base))
+    archive = out / f"{name}-{version}.tar.gz"
+    if url_base is None and archive.resolve().parent == catalog_path.resolve().parent:
+        entry["url"] = archive.name
+    _or_exit(lambda: add_to_catalog(catalog_path, entry))
+    console.print(f"wrote {archive} ({entry['size']:,} bytes, sha256 {entry['sha256'][:16]}…); catalog {catalog_path}")
+
+
+def _or_exit(call, *args):
+    """Call, turning a DatasetError / ValueError into a clean error message and exit code 1."""
+    try:
+        return call(*args)
+    except (ValueError, RuntimeError, OSError) as e:
+        console.print(f"[red]error:[/red] {e}")
+        raise typer.Exit(1) from None
 
 
 def _load_or_exit(load, name):

@@ -1,0 +1,163 @@
+"""The dataset catalog (SPEC section 8): a JSON file listing published datasets with URL, size and sha256.
+
+Format: `{"format_version": 1, "datasets": [entry, ...]}`; an entry has `name`, `version`, `suite`,
+`policy`, `episodes`, `frames`, `size` (bytes of the archive), `sha256` (of the archive) and either
+`url` (http(s) or file URL of a .tar.gz) or `hf_repo_id` (a Hugging Face Hub dataset repo, optionally
+pinned by `hf_revision`; `size` and `sha256` are then optional, the Hub checks its own files). Other
+fields (`format`, `suite_sha256`, `policy_sha256`, `mewa_bench_version`, ...) are kept as they are.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+from mewa_bench.design.suites import write_atomic
+
+CATALOG_FORMAT_VERSION = 1
+CATALOG_ENV = "MEWA_DATASETS_CATALOG"
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")  # a dataset name becomes a directory name
+SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
+URL_SCHEMES = ("http://", "https://", "file://")
+REQUIRED = {"name": str, "version": str, "suite": str, "policy": str, "episodes": int, "frames": int}
+
+
+class DatasetError(RuntimeError):
+    """A catalog, download or archive problem, with a message saying what and where."""
+
+
+def default_catalog_path() -> Path:
+    """`$MEWA_DATASETS_CATALOG`, else `datasets/index.json` at the repository root."""
+    env = os.environ.get(CATALOG_ENV)
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "datasets" / "index.json"
+
+
+def empty_catalog() -> dict[str, Any]:
+    """A catalog without datasets."""
+    return {"format_version": CATALOG_FORMAT_VERSION, "datasets": []}
+
+
+def _check_type(where: str, key: str, value: Any, kind: type) -> None:
+    # bool is an int subclass; a count of True episodes is a typo, not a number
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise DatasetError(f"{where}: field {key!r} must be {kind.__name__}, got {value!r}")
+
+
+def is_relative_path(url: str) -> bool:
+    """A catalog-relative archive path such as `narrow-v1-rts-1.0.0.tar.gz` (no scheme, not absolute)."""
+    return "://" not in url and not url.startswith("/") and bool(url)
+
+
+def resolve_relative_urls(content: dict[str, Any], base: Path) -> dict[str, Any]:
+    """Entries whose url is relative to the catalog file get an absolute file:// URL."""
+    for entry in content["datasets"]:
+        if "url" in entry and is_relative_path(entry["url"]):
+            entry["url"] = (base / entry["url"]).resolve().as_uri()
+    return content
+
+
+def validate_entry(entry: Any, where: str = "catalog entry") -> dict[str, Any]:
+    """Check one entry's fields; returns it unchanged."""
+    if not isinstance(entry, dict):
+        raise DatasetError(f"{where}: an entry must be a JSON object, got {entry!r}")
+    where = f"{where} {entry.get('name', '?')!r}"
+    for key, kind in REQUIRED.items():
+        if key not in entry:
+            raise DatasetError(f"{where}: missing field {key!r}")
+        _check_type(where, key, entry[key], kind)
+    if not NAME_RE.match(entry["name"]):
+        raise DatasetError(f"{where}: name must be letters, digits, '.', '_' or '-' (it becomes a directory name)")
+    if ("url" in entry) == ("hf_repo_id" in entry):
+        raise DatasetError(f"{where}: needs exactly one of 'url' or 'hf_repo_id'")
+    if "url" in entry:
+        _check_type(where, "url", entry["url"], str)
+        if not (entry["url"].startswith(URL_SCHEMES) or is_relative_path(entry["url"])):
+            raise DatasetError(f"{where}: url must start with one of {', '.join(URL_SCHEMES)} or be a path "
+                               f"relative to the catalog, got {entry['url']!r}")
+        for key in ("size", "sha256"):
+            if key not in entry:
+                raise DatasetError(f"{where}: an archive URL needs field {key!r} to verify the download")
+    else:
+        _check_type(where, "hf_repo_id", entry["hf_repo_id"], str)
+    if "size" in entry:
+        _check_type(where, "size", entry["size"], int)
+    if "sha256" in entry and not (isinstance(entry["sha256"], str) and SHA256_RE.match(entry["sha256"])):
+        raise DatasetError(f"{where}: sha256 must be 64 lowercase hex digits, got {entry['sha256']!r}")
+    return entry
+
+
+def validate_catalog(content: Any, where: str) -> dict[str, Any]:
+    """Check a catalog's structure and every entry; names+versions must be unique."""
+    if not isinstance(content, dict) or not isinstance(content.get("datasets"), list):
+        raise DatasetError(f"{where}: a catalog is a JSON object with a 'datasets' list")
+    if content.get("format_version") != CATALOG_FORMAT_VERSION:
+        raise DatasetError(f"{where}: unsupported catalog format_version {content.get('format_version')!r} "
+                           f"(this mewa-bench reads {CATALOG_FORMAT_VERSION})")
+    seen: set[tuple[str, str]] = set()
+    for i, entry in enumerate(content["datasets"]):
+        validate_entry(entry, f"{where}: dataset #{i}")
+        key = (entry["name"], entry["version"])
+        if key in seen:
+            raise DatasetError(f"{where}: {entry['name']} version {entry['version']} is listed twice")
+        seen.add(key)
+    return content
+
+
+def load_catalog(path: Path | str | None = None, resolve: bool = True) -> dict[str, Any]:
+    """Read and validate a catalog file (default: `default_catalog_path()`).
+
+    With `resolve`, archive paths relative to the catalog become absolute file:// URLs (for
+    downloading); without, entries are as written (for editing the catalog).
+    """
+    path = Path(path) if path is not None else default_catalog_path()
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DatasetError(f"dataset catalog {path} does not exist") from None
+    except OSError as e:
+        raise DatasetError(f"cannot read dataset catalog {path}: {e.strerror}") from None
+    try:
+        content = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"dataset catalog {path} is not valid JSON: {e}") from None
+    content = validate_catalog(content, str(path))
+    return resolve_relative_urls(content, path.parent) if resolve else content
+
+
+def version_key(version: str) -> tuple:
+    """Sort key for versions: numeric parts compare as numbers ("1.10" > "1.9")."""
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in re.split(r"[.\-+]", version))
+
+
+def dataset_info(catalog: dict[str, Any], name: str) -> dict[str, Any]:
+    """The entry named `name` (its newest version), or `name@version`."""
+    base, _, version = name.partition("@")
+    matches = [e for e in catalog["datasets"] if e["name"] == base and (not version or e["version"] == version)]
+    if not matches:
+        known = sorted({f"{e['name']}@{e['version']}" for e in catalog["datasets"]})
+        raise DatasetError(f"dataset {name!r} is not in the catalog; known: {', '.join(known) or 'none'}")
+    return max(matches, key=lambda e: version_key(e["version"]))
+
+
+def write_json_atomic(path: Path, content: Any) -> None:
+    """Write JSON (sorted keys, one-space indent) atomically."""
+    write_atomic(path, json.dumps(content, indent=1, sort_keys=True) + "\n")
+
+
+def add_to_catalog(catalog_path: Path | str, entry: dict[str, Any]) -> dict[str, Any]:
+    """Add `entry` to a catalog file (created if missing), replacing the same name+version; atomic."""
+    catalog_path = Path(catalog_path)
+    validate_entry(entry)
+    catalog = load_catalog(catalog_path, resolve=False) if catalog_path.exists() else empty_catalog()
+    same = lambda e: (e["name"], e["version"]) == (entry["name"], entry["version"])  # noqa: E731
+    datasets = catalog["datasets"]
+    index = next((i for i, e in enumerate(datasets) if same(e)), None)
+    if index is None:
+        datasets.append(dict(entry))
+    else:
+        datasets[index] = dict(entry)
+    write_json_atomic(catalog_path, catalog)
+    return catalog

@@ -1,0 +1,89 @@
+"""The record / datasets / evaluate --log commands end to end, and the shipped dataset catalog."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from mewa_bench.cli import app
+from mewa_bench.datasets.catalog import add_to_catalog, load_catalog
+
+REPO = Path(__file__).resolve().parents[1]
+CATALOG = REPO / "datasets" / "index.json"
+runner = CliRunner()
+
+
+@pytest.fixture(autouse=True)
+def offline_hub(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "hf"))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+
+
+def test_shipped_catalog_archives_match_their_entries() -> None:
+    raw = json.loads(CATALOG.read_text())
+    assert len(raw["datasets"]) >= 2
+    for entry in raw["datasets"]:
+        archive = CATALOG.parent / entry["url"]  # shipped archives sit beside the catalog
+        data = archive.read_bytes()
+        assert len(data) == entry["size"] and hashlib.sha256(data).hexdigest() == entry["sha256"]
+        assert entry["suite"] == "narrow-v1"
+
+
+def test_download_a_shipped_dataset_and_load_it_with_lerobot(tmp_path: Path) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    name = load_catalog(CATALOG)["datasets"][0]["name"]
+    result = runner.invoke(app, ["datasets", "download", name, "--dir", str(tmp_path), "--catalog", str(CATALOG)])
+    assert result.exit_code == 0, result.output
+    assert "verified" in result.output
+    entry = next(e for e in load_catalog(CATALOG)["datasets"] if e["name"] == name)
+    ds = LeRobotDataset(f"mewa/{name}", root=tmp_path / name, video_backend="pyav")
+    assert ds.num_episodes == entry["episodes"] and ds.num_frames == entry["frames"]
+    listed = runner.invoke(app, ["datasets", "list", "--catalog", str(CATALOG)])
+    assert listed.exit_code == 0 and name[:6] in listed.output
+    missing = runner.invoke(app, ["datasets", "info", "no-such-dataset", "--catalog", str(CATALOG)])
+    assert missing.exit_code == 1 and "no-such-dataset" in " ".join(missing.output.split())
+
+
+def test_record_pack_download_round_trip(tmp_path: Path) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    out = tmp_path / "rec"
+    result = runner.invoke(app, ["record", "--policy", "max-expected", "--out", str(out), "--pairs", "0,2",
+                                 "--log", "mcap", "--log-dir", str(tmp_path / "logs")])
+    assert result.exit_code == 0, result.output
+    results = json.loads((tmp_path / "rec.results.json").read_text())
+    assert results["agent"]["privileged"] and len(results["units"]) == 2
+    frames = sum(sum(u["lengths"]) for u in results["units"])
+    assert (tmp_path / "logs" / "rec.results.mcap").exists()
+    catalog = tmp_path / "cat" / "index.json"
+    packed = runner.invoke(app, ["datasets", "pack", str(out), "--name", "rec", "--suite", "narrow-v1", "--policy",
+                                 "max-expected", "--out", str(catalog.parent), "--catalog", str(catalog)])
+    assert packed.exit_code == 0, packed.output
+    assert json.loads(catalog.read_text())["datasets"][0]["url"] == "rec-1.0.0.tar.gz"  # relative: portable
+    got = runner.invoke(app, ["datasets", "download", "rec", "--dir", str(tmp_path / "dl"), "--catalog", str(catalog)])
+    assert got.exit_code == 0, got.output
+    ds = LeRobotDataset("mewa/rec", root=tmp_path / "dl" / "rec", video_backend="pyav")
+    assert ds.num_episodes == 20 and ds.num_frames == frames
+    again = runner.invoke(app, ["record", "--policy", "max-expected", "--out", str(out)])
+    assert again.exit_code == 1 and "already exists" in " ".join(again.output.split())
+
+
+def test_adding_to_a_catalog_keeps_relative_urls(tmp_path: Path) -> None:
+    catalog = tmp_path / "index.json"
+    base = {"version": "1.0.0", "suite": "narrow-v1", "policy": "p", "episodes": 1, "frames": 1, "size": 1,
+            "sha256": "0" * 64}
+    add_to_catalog(catalog, {**base, "name": "a", "url": "a-1.0.0.tar.gz"})
+    add_to_catalog(catalog, {**base, "name": "b", "url": "b-1.0.0.tar.gz"})
+    assert [e["url"] for e in json.loads(catalog.read_text())["datasets"]] == ["a-1.0.0.tar.gz", "b-1.0.0.tar.gz"]
+    assert load_catalog(catalog)["datasets"][0]["url"] == (tmp_path / "a-1.0.0.tar.gz").as_uri()
+
+
+def test_evaluate_log_option_errors_clearly(tmp_path: Path) -> None:
+    result = runner.invoke(app, ["evaluate", str(REPO / "submissions" / "random" / "agent.py"), "--log", "csv",
+                                 "--out", str(tmp_path / "r.json")])
+    assert result.exit_code == 1 and "unknown log kind" in " ".join(result.output.split())
