@@ -59,6 +59,8 @@ def evaluate(
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
     log: str = typer.Option(None, help="Trajectory logs to write: mcap, rerun or mcap,rerun."),
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files (named after the results file)."),
+    mode: str = typer.Option("vector", help="vector (float32[18]) or sapien ({'state', 'image'} rendered by SAPIEN)."),
+    image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
 ) -> None:
     """Score an agent on a frozen suite under the 10-episode adaptation protocol and write a results file."""
     from mewa_bench.protocol.runner import EvalConfig
@@ -68,7 +70,8 @@ def evaluate(
         agent_path=agent, suite=suite, seeds=_parse_seeds(seeds), out=out, name=name,
         agent_args=_parse_agent_args(agent_arg), checkpoint=checkpoint, isolated=not in_process,
         time_limit=time_limit or None, memory_limit=_parse_bytes(memory_limit), privileged=privileged,
-        jobs=jobs, resume=resume, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None)
+        jobs=jobs, resume=resume, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
+        **_mode_options(mode, image_size))
     results, path, logs = _run_with_progress(config, log, log_dir, f"{agent.name} on {suite}")
     console.print(results_table(results))
     console.print(f"results: [bold]{path}[/bold]" + ("" if results["complete"] else " (partial run: not rankable)"))
@@ -124,6 +127,9 @@ def record(
     log: str = typer.Option(None, help="Also write trajectory logs: mcap, rerun or mcap,rerun."),
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3."),
+    mode: str = typer.Option("vector", help="vector, or sapien to also record camera images."),
+    image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
+    video: bool = typer.Option(False, help="Store sapien images as AV1 video (smaller, lossy) instead of PNG."),
 ) -> None:
     """Roll out a baseline policy or an agent under the evaluation protocol and record a LeRobot dataset."""
     from mewa_bench.datasets.lerobot_recorder import LeRobotSink
@@ -139,8 +145,9 @@ def record(
         agent_path=Path(policy) if is_file else policy_agent.AGENT_FILE, suite=suite, seeds=_parse_seeds(seeds),
         out=results or out.with_name(out.name + ".results.json"), name=Path(policy).stem if is_file else policy,
         agent_args=args if is_file else {"policy": policy, **args}, isolated=is_file,
-        privileged=privileged or not is_file, jobs=jobs, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None)
-    sink = LeRobotSink(out, repo_id or f"mewa/{out.name}", fps=fps)
+        privileged=privileged or not is_file, jobs=jobs, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
+        **_mode_options(mode, image_size))
+    sink = LeRobotSink(out, repo_id or f"mewa/{out.name}", fps=fps, video=video)
     results_data, path, logs = _run_with_progress(config, log, log_dir, f"recording {policy} on {suite}", [sink])
     console.print(f"dataset: [bold]{out}[/bold] ({sink.frames:,} frames, {len(results_data['units']) * config.episodes} "
                   f"episodes, {sink.frames_per_second:,.0f} frames/s); results: {path}")
@@ -175,6 +182,25 @@ def leaderboard(submissions: Path = typer.Option(Path("submissions"), help="Fold
         console.print(f"wrote {path}")
     if report.invalid:
         console.print(f"[yellow]{len(report.invalid)} results file(s) were invalid and skipped[/yellow]")
+
+
+def _mode_options(mode: str, image_size: str) -> dict:
+    """Validate --mode and --image-size; in sapien mode check the render device before anything runs."""
+    if mode not in ("vector", "sapien"):
+        raise typer.BadParameter("expected vector or sapien", param_hint="--mode")
+    try:
+        height, width = (int(v) for v in image_size.lower().split("x"))
+    except ValueError:
+        raise typer.BadParameter(f"expected HxW such as 128x128, got {image_size!r}", param_hint="--image-size") from None
+    if mode == "sapien":
+        from mewa_bench.render.device import RenderUnavailable, require_render_device
+
+        try:
+            require_render_device()
+        except RenderUnavailable as e:
+            console.print(f"[red]error:[/red] {e}")
+            raise typer.Exit(1) from None
+    return {"mode": mode, "image_size": (height, width)}
 
 
 def _parse_ints(text: str, option: str) -> list[int]:

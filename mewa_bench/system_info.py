@@ -27,7 +27,18 @@ def system_info() -> dict[str, str]:
     info["python"] = f"{platform.python_version()} ({sys.executable})"
     info["platform"] = platform.platform()
     info["machine"] = f"{platform.machine()}, {_cpu_count()} CPUs"
+    info["render device"] = render_device_text()
     return info
+
+
+def render_device_text() -> str:
+    """The Vulkan device SAPIEN mode would use, or why there is none (sapien is not imported)."""
+    from mewa_bench.render.device import find_render_device
+
+    device = find_render_device()
+    if device is None:
+        return "none usable (sapien mode unavailable: run `bash .ci/install-vulkan`)"
+    return f"{device.name} ({device.kind}, Vulkan {device.api_version}, {device.icd})"
 
 
 def _cpu_count() -> int:

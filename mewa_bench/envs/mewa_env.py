@@ -15,6 +15,8 @@ from mewa_bench.game.table import transition_table
 from mewa_bench.game.task import Task, Worker
 
 ENV_VERSION = "v0"
+OBSERVATION_MODES = ("vector", "sapien")
+DEFAULT_IMAGE_SIZE = (128, 128)  # (height, width)
 _PAIR_BATCH = 64
 
 
@@ -40,6 +42,8 @@ class MewaEnv(gym.Env):
     - `[4:12]` per colour: blocks in the worker's open structure, and its mistake flag (0/1);
     - `[12:16]` completed flag per colour;
     - `[16]` worker blocks not yet placed, `[17]` worker blocks placed.
+
+    With `mode="sapien"`: `Dict(state=<the Box above>, image=Box(0, 255, (H, W, 3), uint8))`.
 
     ## Rewards
     While sub-goal `i` is the current one, every step gives `task.rewards[i]` (negative, increasing
@@ -67,6 +71,9 @@ class MewaEnv(gym.Env):
       worker is sampled from the task's distribution at every reset.
     - `tasks`: several tasks; each reset samples one uniformly, then a meta-train worker.
     - `include_centre`: also sample meta-train workers from the centre band (see `distributions`).
+    - `mode="sapien"`: observations become `{"state": float32[18], "image": uint8[H, W, 3]}`, the
+      scene rendered headless by SAPIEN (`image_size=(H, W)`, default 128 x 128); same rules.
+      `render_mode="rgb_array"` returns that image, `render_mode="ansi"` a text picture.
     - `reset(options={"task": ..., "worker": ...})` switches to that pair (for this and later resets);
       `reset(options={"keep_pair": True})` plays the current pair again (see `MetaEpisode`).
 
@@ -74,16 +81,28 @@ class MewaEnv(gym.Env):
     - v0: the rules of SPEC section 2, reproducing the authors' reference traces exactly.
     """
 
-    metadata: dict[str, Any] = {"render_modes": ["ansi"], "render_fps": 4}
+    metadata: dict[str, Any] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
 
     def __init__(self, task: Task | dict | None = None, worker: Sequence[float] | None = None,
                  tasks: Sequence[Task | dict] | None = None, include_centre: bool = False,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, mode: str = "vector",
+                 image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode {render_mode!r} is not one of {self.metadata['render_modes']}")
-        self.render_mode = render_mode
+        if mode not in OBSERVATION_MODES:
+            raise ValueError(f"mode {mode!r} is not one of {', '.join(OBSERVATION_MODES)}")
+        self.render_mode, self.mode = render_mode, mode
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self._renderer: Any = None
         self.action_space = spaces.Discrete(NUM_COLORS)
-        self.observation_space = spaces.Box(0.0, 255.0, shape=(OBS_SIZE,), dtype=np.float32)
+        state_space = spaces.Box(0.0, 255.0, shape=(OBS_SIZE,), dtype=np.float32)
+        if mode == "sapien":
+            height, width = self.image_size
+            self.observation_space = spaces.Dict({
+                "state": state_space, "image": spaces.Box(0, 255, shape=(height, width, 3), dtype=np.uint8)})
+            self._image()  # fail now, with the install hint, if no render device is usable
+        else:
+            self.observation_space = state_space
         self._source = PairSource.build(task, worker, tasks, include_centre)
         self._set_pair(self._source.tasks[0], self._source.worker or Worker((0.0,) * self._source.tasks[0].N))
         self._t = 0
@@ -149,7 +168,7 @@ class MewaEnv(gym.Env):
         self._t = 0
         self._return = 0.0
         self._done = False
-        return self._fast.obs[0].copy(), {"progress": 0, "events": ()}
+        return self._observe(0), {"progress": 0, "events": ()}
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Hand over one block of colour `action`."""
@@ -176,13 +195,32 @@ class MewaEnv(gym.Env):
             self._done = True
             info["episode_return"] = self._return
             info["normalised_return"] = (self._return - self._r_min) / self._r_span
-        return f.obs[s].copy(), reward, terminated, truncated, info
+        return self._observe(s), reward, terminated, truncated, info
 
-    def render(self) -> str | None:
-        """Text picture of the current state (render_mode="ansi")."""
-        if self.render_mode != "ansi":
-            return None
-        return render_text(self._task, self._fast.obs[self._s], self._t)
+    def _observe(self, s: int) -> np.ndarray | dict[str, np.ndarray]:
+        obs = self._fast.obs[s].copy()
+        if self.mode == "vector":
+            return obs
+        return {"state": obs, "image": self._image(s)}
+
+    def _image(self, s: int | None = None) -> np.ndarray:
+        """The SAPIEN picture of state index `s` (or just build the renderer); sapien is imported here only."""
+        if self._renderer is None:
+            from mewa_bench.render.scene import SceneRenderer
+
+            height, width = self.image_size
+            self._renderer = SceneRenderer(width=width, height=height)
+        if s is None:
+            return np.empty(0, dtype=np.uint8)
+        return self._renderer.render(self._task, self._fast.states[s])
+
+    def render(self) -> str | np.ndarray | None:
+        """Text picture (render_mode="ansi") or SAPIEN image (render_mode="rgb_array") of the current state."""
+        if self.render_mode == "ansi":
+            return render_text(self._task, self._fast.obs[self._s], self._t)
+        if self.render_mode == "rgb_array":
+            return self._image(getattr(self, "_s", 0))
+        return None
 
 
 class _FastTable(NamedTuple):
@@ -198,6 +236,7 @@ class _FastTable(NamedTuple):
     reward: list[float]
     terminal: list[bool]
     progress: list[int]
+    states: tuple
 
 
 _FAST: dict[tuple, _FastTable] = {}
@@ -209,7 +248,7 @@ def _fast_table(task: Task) -> _FastTable:
         t = transition_table(task)
         _FAST[key] = _FastTable(t.next_ok.tolist(), t.next_mistake.tolist(), t.mistake_type.tolist(),
                                 t.events_ok.tolist(), t.events_mistake.tolist(), t.event_sets, t.obs,
-                                t.reward.tolist(), t.terminal.tolist(), t.progress.tolist())
+                                t.reward.tolist(), t.terminal.tolist(), t.progress.tolist(), t.states)
     return _FAST[key]
 
 

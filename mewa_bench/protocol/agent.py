@@ -175,3 +175,10 @@ def _exception_summary(exc: BaseException) -> str:
     if frames:
         text += f" (at {frames[-1].filename}, line {frames[-1].lineno})"
     return text
+
+
+def state_vector(observation: Any) -> np.ndarray:
+    """The float32[18] state of an observation: the observation itself, or its "state" in sapien mode."""
+    if isinstance(observation, dict):
+        observation = observation["state"]
+    return np.asarray(observation, dtype=np.float32)

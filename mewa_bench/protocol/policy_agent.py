@@ -48,7 +48,9 @@ class PolicyPlayer:
 
     def act(self, observation: np.ndarray) -> int:
         """The policy's action for the observed state."""
-        return self.player.act_observation(observation)
+        from mewa_bench.protocol.agent import state_vector
+
+        return self.player.act_observation(state_vector(observation))
 
     def end_episode(self) -> None:
         """Policies restart their counters at every episode."""

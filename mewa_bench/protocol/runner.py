@@ -22,7 +22,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from mewa_bench.design.suites import Suite, load_suite
-from mewa_bench.envs.mewa_env import ENV_VERSION, MewaEnv
+from mewa_bench.envs.mewa_env import DEFAULT_IMAGE_SIZE, ENV_VERSION, MewaEnv
 from mewa_bench.protocol.agent import Transition, agent_sha256
 from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, AgentError, AgentRunner,
                                            make_agent_runner)
@@ -63,6 +63,8 @@ class EvalConfig:
     resume: bool = False
     pairs: tuple[int, ...] | None = None  # a subset of pairs, for quick checks (the run is then partial)
     collect_trajectories: bool = False  # set by `evaluate` when sinks are attached
+    mode: str = "vector"  # or "sapien": agents observe {"state": float32[18], "image": uint8[H, W, 3]}
+    image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE
 
 
 def agent_name(path: Path) -> str:
@@ -87,6 +89,15 @@ def hidden_pair(suite: Suite, pair: int) -> dict[str, Any]:
     return {"task": suite.tasks[p.task_index].to_dict(), "worker": list(p.worker.w)}
 
 
+def step_record(step: int, obs: Any, action: int, reward: float, next_obs: Any, terminated: bool,
+                truncated: bool, info: dict[str, Any]) -> StepRecord:
+    """A step for the sinks: state vectors, plus the image of `next_obs` in sapien mode."""
+    if isinstance(obs, dict):
+        return StepRecord(step, obs["state"], action, reward, next_obs["state"], terminated, truncated,
+                          info["progress"], info["events"], next_obs["image"])
+    return StepRecord(step, obs, action, reward, next_obs, terminated, truncated, info["progress"], info["events"])
+
+
 def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: int, episodes: int,
               privileged: bool, agent_file: str, collect: bool = False) -> tuple[dict[str, Any], UnitRecord | None]:
     """One (pair, seed) unit: reset_task, then `episodes` episodes; the unit's record and, if `collect`, its steps."""
@@ -102,6 +113,7 @@ def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: 
     for k in range(episodes):
         s = env_seed(suite.sha256, pair, seed, k)
         obs, _ = env.reset(seed=s, options={"task": task, "worker": worker})
+        first_image = obs["image"] if collect and isinstance(obs, dict) else None
         transition, step, done, steps = None, 0, False, []
         while not done:
             try:
@@ -111,8 +123,7 @@ def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: 
             next_obs, reward, terminated, truncated, info = env.step(action)
             transition = Transition(obs, action, float(reward), next_obs, terminated, truncated)
             if collect:
-                steps.append(StepRecord(step, obs, action, float(reward), next_obs, terminated, truncated,
-                                        info["progress"], info["events"]))
+                steps.append(step_record(step, obs, action, float(reward), next_obs, terminated, truncated, info))
             obs, step, done = next_obs, step + 1, terminated or truncated
         try:
             runner.end_episode(transition)
@@ -124,7 +135,7 @@ def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: 
         lengths.append(step)
         if collect:
             played.append(EpisodeRecord(k, s, tuple(steps), info["episode_return"], info["normalised_return"],
-                                        info["normalised_return"] / best))
+                                        info["normalised_return"] / best, first_image))
     unit = {"pair": pair, "seed": seed, "task": p.task_index, "env_seeds": seeds, "returns": returns,
             "normalised_returns": normalised, "lengths": lengths, "scores": [v / best for v in normalised]}
     record = UnitRecord(pair, seed, p.task_index, task.to_dict(), worker, tuple(played)) if collect else None
@@ -136,7 +147,8 @@ class _UnitPlayer:
 
     def __init__(self, config: EvalConfig, suite: Suite) -> None:
         self.config, self.suite = config, suite
-        self.env = MewaEnv(task=suite.tasks[0], worker=suite.pairs[0].worker.w)
+        self.env = MewaEnv(task=suite.tasks[0], worker=suite.pairs[0].worker.w, mode=config.mode,
+                           image_size=config.image_size)
         self.runner: AgentRunner | None = None
 
     def play(self, pair: int, seed: int) -> tuple[dict[str, Any], float, UnitRecord | None]:
@@ -191,7 +203,8 @@ def new_results(config: EvalConfig, suite: Suite) -> dict[str, Any]:
                   "sha256": agent_sha256(config.agent_path), "privileged": config.privileged,
                   "agent_args": dict(sorted(config.agent_args.items())), "checkpoint": config.checkpoint},
         "suite": {"name": suite.name, "version": suite.content["version"], "sha256": suite.sha256},
-        "env": {"id": suite.content["env_id"], "version": ENV_VERSION, "mode": "vector"},
+        "env": {"id": suite.content["env_id"], "version": ENV_VERSION, "mode": config.mode,
+                **({"image_size": list(config.image_size)} if config.mode == "sapien" else {})},
         "package_version": __version__, "seeds": list(config.seeds), "episodes_per_pair": config.episodes,
         "pairs": list(config.pairs) if config.pairs is not None else None,
         "isolation": {"isolated": config.isolated, "time_limit": config.time_limit, "memory_limit": config.memory_limit},

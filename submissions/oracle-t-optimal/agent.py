@@ -19,7 +19,7 @@ from mewa_bench.design.exact import expected_returns
 from mewa_bench.design.policies import TOptimal, toptimal_family
 from mewa_bench.game.rules import state_from_observation
 from mewa_bench.game.task import Task
-from mewa_bench.protocol.agent import Transition
+from mewa_bench.protocol.agent import Transition, state_vector
 
 PRIVILEGED = True
 NUM_ACTIONS = 4
@@ -56,7 +56,7 @@ class OracleTOptimalAgent:
         """The policy's action in the observed state."""
         if self.task is None or self.policy is None:
             raise RuntimeError("act() before reset_task(hidden): oracle-t-optimal must be told the pair first")
-        state = state_from_observation(self.task, np.asarray(obs, dtype=np.float32))
+        state = state_from_observation(self.task, state_vector(obs))
         choice = self.policy.choices(self.task, state, self.memory)[0]
         self.memory = choice.memory
         return int(choice.action)
