@@ -288,7 +288,7 @@ def suites_show(name: str = typer.Argument(..., help="Suite name or path.")) -> 
     from mewa_bench.design.suites import load_suite
     from mewa_bench.suite_tables import pair_table, summary_table, task_table
 
-    suite = _load_or_exit(load_suite, name)
+    suite = _or_exit(load_suite, name)
     console.print(f"[bold]{suite.name}[/bold]  sha256 {suite.sha256}")
     console.print(task_table(suite))
     console.print(pair_table(suite))
@@ -301,7 +301,7 @@ def suites_verify(path: Path = typer.Argument(None, help="A suite file (default:
     from mewa_bench.design.suites import SHIPPED_SUITES, load_suite
 
     for target in ([path] if path else list(SHIPPED_SUITES)):
-        suite = _load_or_exit(load_suite, target)
+        suite = _or_exit(load_suite, target)
         console.print(f"[green]ok[/green] {suite.name}: content matches sha256 {suite.sha256[:16]}… ({suite.path})")
 
 
@@ -395,20 +395,10 @@ def datasets_pack(dataset: Path = typer.Argument(..., help="A recorded dataset f
 
 
 def _or_exit(call, *args):
-    """Call, turning a DatasetError / ValueError into a clean error message and exit code 1."""
+    """Call, turning a library error (bad suite, catalog, download...) into a clean message and exit code 1."""
     try:
         return call(*args)
     except (ValueError, RuntimeError, OSError) as e:
-        console.print(f"[red]error:[/red] {e}")
-        raise typer.Exit(1) from None
-
-
-def _load_or_exit(load, name):
-    from mewa_bench.design.suites import SuiteError
-
-    try:
-        return load(name)
-    except SuiteError as e:
         console.print(f"[red]error:[/red] {e}")
         raise typer.Exit(1) from None
 

@@ -199,3 +199,13 @@ def test_committed_leaderboards_are_up_to_date_with_the_submissions(tmp_path: Pa
         for ext in ("md", "csv"):
             assert (tmp_path / f"{suite}.{ext}").read_text() == (repo / "leaderboards" / f"{suite}.{ext}").read_text()
     assert (tmp_path / "index.html").read_text() == (repo / "leaderboards" / "index.html").read_text()
+
+
+def test_submitted_results_were_produced_by_the_shipped_agent_files() -> None:
+    import hashlib
+
+    repo = Path(__file__).resolve().parents[1]
+    for results_file in sorted((repo / "submissions").glob("*/results-*.json")):
+        recorded = json.loads(results_file.read_text())["agent"]["sha256"]
+        actual = hashlib.sha256((results_file.parent / "agent.py").read_bytes()).hexdigest()
+        assert recorded == actual, f"{results_file}: re-run the evaluation, agent.py changed since"
