@@ -55,7 +55,8 @@ def evaluate(
     memory_limit: str = typer.Option("4G", help="Agent address-space limit, e.g. 4G, 512M, or none."),
     privileged: bool = typer.Option(False, help="Tell the agent the hidden pair (reference agents only; never ranked)."),
     jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
-    resume: bool = typer.Option(False, help="Continue an interrupted run in the same results file."),
+    resume: bool = typer.Option(False, help="Continue an interrupted run in the same results file (same agent file)."),
+    overwrite: bool = typer.Option(False, help="Replace an existing results file."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
     log: str = typer.Option(None, help="Trajectory logs to write: mcap, rerun or mcap,rerun."),
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files (named after the results file)."),
@@ -70,16 +71,31 @@ def evaluate(
         agent_path=agent, suite=suite, seeds=_parse_seeds(seeds), out=out, name=name,
         agent_args=_parse_agent_args(agent_arg), checkpoint=checkpoint, isolated=not in_process,
         time_limit=time_limit or None, memory_limit=_parse_bytes(memory_limit), privileged=privileged,
-        jobs=jobs, resume=resume, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
+        jobs=jobs, resume=resume, overwrite=overwrite, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
         **_mode_options(mode, image_size))
-    results, path, logs = _run_with_progress(config, log, log_dir, f"{agent.name} on {suite}")
+    results, path, logs = _run_with_progress(config, log, log_dir, f"{agent.name} on {suite}",
+                                             resume_hint="re-run the same command with --resume to continue")
     console.print(results_table(results))
     console.print(f"results: [bold]{path}[/bold]" + ("" if results["complete"] else " (partial run: not rankable)"))
     for p in logs:
         console.print(f"log: {p}")
 
 
-def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra_sinks=()):
+def _check_policy_name(policy: str) -> None:
+    """Reject an unknown baseline policy name before anything runs."""
+    from mewa_bench.design.policies import policy_from_name
+    from mewa_bench.protocol.policy_agent import MAX_EXPECTED
+
+    if policy == MAX_EXPECTED:
+        return
+    try:
+        policy_from_name(policy)
+    except ValueError:
+        raise typer.BadParameter(f"unknown policy {policy!r}: expected random, random-task-specific, {MAX_EXPECTED}, "
+                                 "toptimal(rho1=R1,rho2=R2,q=Q), or an agent .py file", param_hint="--policy") from None
+
+
+def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra_sinks=(), resume_hint: str = ""):
     """Run `evaluate` with a progress bar, log sinks and clear errors; (results, results path, log paths)."""
     from mewa_bench.logs.files import make_log_sinks, parse_log_kinds
     from mewa_bench.protocol.runner import EvaluationError, default_results_path, evaluate
@@ -101,8 +117,12 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
         except EvaluationError as e:
             bar.stop()
             console.print(f"[red]error:[/red] {e}")
-            console.print("Units finished before the error are kept in the results file (and logs); fix the "
-                          "agent and re-run with --resume to continue.")
+            out = config.out or default_results_path(config, load_suite(config.suite))
+            if out.exists():
+                console.print(f"The units finished before the error are kept in {out}. If the failure was not the "
+                              f"agent's fault (a time limit too tight, an interruption), "
+                              f"{resume_hint or 'run again with another --results file'}; "
+                              "a changed agent file needs a new run.")
             raise typer.Exit(1) from None
         except ValueError as e:  # bad suite, results file or option
             bar.stop()
@@ -140,6 +160,8 @@ def record(
         console.print(f"[red]error:[/red] {out} already exists (LeRobot creates the dataset folder itself)")
         raise typer.Exit(1)
     is_file = policy.endswith(".py")
+    if not is_file:
+        _check_policy_name(policy)
     args = _parse_agent_args(agent_arg)
     config = EvalConfig(
         agent_path=Path(policy) if is_file else policy_agent.AGENT_FILE, suite=suite, seeds=_parse_seeds(seeds),
@@ -160,13 +182,21 @@ def view(file: Path = typer.Argument(..., help="A Rerun recording (.rrd) written
          web: bool = typer.Option(False, help="Serve the web viewer on 127.0.0.1 instead of opening a window."),
          port: int = typer.Option(None, help="Port of the web viewer.")) -> None:
     """Open a Rerun recording in the Rerun viewer."""
+    import os
+
     from mewa_bench.logs.view import ViewerError, open_viewer
 
+    if file.suffix != ".rrd":
+        console.print(f"[red]error:[/red] {file} is not a Rerun recording (.rrd); MCAP files open in Foxglove")
+        raise typer.Exit(1)
+    if not web and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        console.print("[yellow]no display found: the native viewer needs one; use --web for the web viewer[/yellow]")
     try:
-        raise typer.Exit(open_viewer(file, web=web, web_port=port))
+        code = open_viewer(file, web=web, web_port=port)
     except ViewerError as e:
         console.print(f"[red]error:[/red] {e}")
         raise typer.Exit(1) from None
+    raise typer.Exit(code)
 
 
 @app.command()
@@ -175,7 +205,9 @@ def leaderboard(submissions: Path = typer.Option(Path("submissions"), help="Fold
     """Validate every results file in submissions/ and write leaderboards/<suite>.md, .csv, .png and index.html."""
     from mewa_bench.leaderboard import build_leaderboards
 
-    report = build_leaderboards(submissions, out)
+    report = _or_exit(build_leaderboards, submissions, out)
+    if not any(report.entries.values()) and not report.invalid:
+        console.print(f"[yellow]no results files found in {submissions}/*/ (expected submissions/<name>/results-<suite>.json)[/yellow]")
     for path, reason in report.invalid:
         console.print(f"[yellow]skipped[/yellow] {path}: {reason}")
     for path in report.written:
@@ -214,7 +246,8 @@ def _parse_seeds(text: str) -> tuple[int, ...]:
     values = _parse_ints(text, "--seeds")
     if "," not in text and len(values) == 1:
         if values[0] < 1:
-            raise typer.BadParameter("need at least one seed", param_hint="--seeds")
+            raise typer.BadParameter("a single number is a count of seeds (3 = seeds 0, 1, 2); for the one seed 0 "
+                                     "use --seeds 1, for another one seed N use --seeds N,", param_hint="--seeds")
         return tuple(range(values[0]))
     return tuple(values)
 

@@ -87,3 +87,11 @@ def test_evaluate_log_option_errors_clearly(tmp_path: Path) -> None:
     result = runner.invoke(app, ["evaluate", str(REPO / "submissions" / "random" / "agent.py"), "--log", "csv",
                                  "--out", str(tmp_path / "r.json")])
     assert result.exit_code == 1 and "unknown log kind" in " ".join(result.output.split())
+
+
+def test_cli_rejects_unknown_policies_and_missing_submission_folders(tmp_path: Path) -> None:
+    bad = runner.invoke(app, ["record", "--policy", "max_expected", "--out", str(tmp_path / "d")])
+    text = " ".join(bad.output.split())
+    assert bad.exit_code == 2 and "max-expected" in text and not (tmp_path / "d").exists()
+    missing = runner.invoke(app, ["leaderboard", "--submissions", str(tmp_path / "nothing"), "--out", str(tmp_path / "lb")])
+    assert missing.exit_code == 1 and "no such submissions folder" in " ".join(missing.output.split())

@@ -87,7 +87,7 @@ def test_recorded_counts_and_lerobot_load(recorded):
     assert item["observation.state"].shape == (18,) and str(item["observation.state"].dtype) == "torch.float32"
     assert str(item["action"].dtype) == "torch.int64"
     assert item["task"] == task_description("narrow-v1", 0, load_suite("narrow-v1").tasks[0].to_dict())
-    assert item["task"] == "MEWA narrow-v1 pair 0: order red>blue>green>orange, K=5, M=3"
+    assert item["task"] == "MEWA narrow-v1: order red>blue>green>orange, K=5, M=3"  # never the pair (= worker)
     assert "observation.images.top" not in ds.features  # vector mode: no images
     assert not (root / "images").exists()
 

@@ -181,3 +181,42 @@ def test_reference_agents_score_their_exact_baseline_within_ci(tmp_path: Path, a
 def test_oracle_refuses_to_run_unprivileged(tmp_path: Path) -> None:
     with pytest.raises(EvaluationError, match="privileged"):
         run(tmp_path, SUBMISSIONS / "oracle-t-optimal" / "agent.py", isolated=False, pairs=(0,))
+
+
+def test_references_are_over_the_pairs_played() -> None:
+    from mewa_bench.protocol.runner import reference_scores
+
+    suite = load_suite("narrow-v1")
+    whole = reference_scores(suite, range(len(suite.pairs)))
+    for key, value in suite.summary["score"].items():
+        assert whole["score"][key] == pytest.approx(value, abs=1e-11)
+    some = reference_scores(suite, [0, 1, 2])
+    by_hand = np.mean([p.data["baselines"]["random"] / p.max_expected for p in suite.pairs[:3]])
+    assert some["score"]["random"] == pytest.approx(by_hand)
+    assert some["score"]["random"] != pytest.approx(whole["score"]["random"], abs=0.01)
+
+
+def test_partial_run_reports_its_own_references(tmp_path: Path) -> None:
+    results, _ = run(tmp_path, FAULTY, agent_args={"fault": "none"}, seeds=(0,), pairs=(0, 1, 2))
+    assert results["baselines"]["pairs"] == [0, 1, 2] and not results["complete"]
+    rts = results["baselines"]["score"]["random_task_specific"]
+    assert results["scores"]["skill"]["mean"] == pytest.approx((results["scores"]["mean"]["mean"] - rts) / (1 - rts))
+
+
+def test_repeated_seeds_or_pairs_are_rejected(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="repeat"):
+        run(tmp_path, FAULTY, seeds=(0, 0))
+    with pytest.raises(ValueError, match="repeat"):
+        run(tmp_path, FAULTY, seeds=(0,), pairs=(1, 1))
+
+
+def test_overwrite_and_resume_with_a_changed_agent(tmp_path: Path) -> None:
+    agent = tmp_path / "my_agent.py"
+    agent.write_text(FAULTY.read_text())
+    args = dict(agent_args={"fault": "none"}, seeds=(0,), pairs=(0,))
+    run(tmp_path, agent, **args)
+    again, _ = run(tmp_path, agent, overwrite=True, **args)
+    assert len(again["units"]) == 1
+    agent.write_text(FAULTY.read_text() + "\n# changed\n")
+    with pytest.raises(ValueError, match="agent file changed"):
+        run(tmp_path, agent, resume=True, **args)

@@ -209,3 +209,14 @@ def test_submitted_results_were_produced_by_the_shipped_agent_files() -> None:
         recorded = json.loads(results_file.read_text())["agent"]["sha256"]
         actual = hashlib.sha256((results_file.parent / "agent.py").read_bytes()).hexdigest()
         assert recorded == actual, f"{results_file}: re-run the evaluation, agent.py changed since"
+
+
+def test_a_changed_agent_file_invalidates_its_results(tmp_path: Path) -> None:
+    import shutil
+
+    repo = Path(__file__).resolve().parents[1]
+    sub = tmp_path / "subs" / "random"
+    shutil.copytree(repo / "submissions" / "random", sub)
+    (sub / "agent.py").write_text((sub / "agent.py").read_text() + "\n# edited after evaluating\n")
+    report = build_leaderboards(tmp_path / "subs", tmp_path / "lb")
+    assert len(report.invalid) == 2 and all("re-run the evaluation" in why for _, why in report.invalid)

@@ -80,9 +80,13 @@ def make_features(image_shape: tuple[int, int, int] | None, video: bool = False)
 
 
 def task_description(suite: str, pair: int, task: dict[str, Any]) -> str:
-    """LeRobot task string of a pair: the task's sub-goal order and sizes, never the worker."""
+    """LeRobot task string of a pair: the task's sub-goal order and sizes, never the worker or the pair.
+
+    Pairs of one task share the string (in narrow-v1 the pair would identify the worker); group
+    trajectories by pair with the per-frame `pair_index` instead.
+    """
     order = ">".join(COLOR_NAMES[c] for c in task["order"])
-    return f"MEWA {suite} pair {pair}: order {order}, K={task['K']}, M={task['M']}"
+    return f"MEWA {suite}: order {order}, K={task['K']}, M={task['M']}"
 
 
 def episode_images(episode: EpisodeRecord) -> list[np.ndarray | None]:

@@ -7,6 +7,8 @@ scores agree with its units. The scores shown are recomputed from the units, nev
 
 from __future__ import annotations
 
+import hashlib
+
 import json
 import re
 from collections import Counter
@@ -114,9 +116,20 @@ def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
     units = _covering_units(results["units"], suite, seeds)
     scores = _verified_scores(units, suite, results["scores"])
     agent = results["agent"]
+    _check_agent_file(path, agent)
     return Entry(suite=suite.name, agent=str(agent["name"]), path=path, privileged=agent.get("privileged") is True,
                  scores=scores, seeds=seeds, date=finished_date(results),
                  package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""))
+
+
+def _check_agent_file(path: Path, agent: dict[str, Any]) -> None:
+    """The submission's agent.py, when present, must be the file these results were produced by."""
+    agent_file = path.parent / "agent.py"
+    if agent_file.is_file():
+        actual = hashlib.sha256(agent_file.read_bytes()).hexdigest()
+        if actual != agent.get("sha256"):
+            raise InvalidResults(f"{agent_file} (sha256 {actual[:12]}…) is not the agent these results were produced "
+                                 f"by (sha256 {str(agent.get('sha256'))[:12]}…): re-run the evaluation")
 
 
 def _seeds(seeds: Any) -> tuple[int, ...]:

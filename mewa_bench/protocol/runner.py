@@ -61,6 +61,7 @@ class EvalConfig:
     privileged: bool = False
     jobs: int = 1
     resume: bool = False
+    overwrite: bool = False  # replace an existing results file (it is replaced when the first unit is written)
     pairs: tuple[int, ...] | None = None  # a subset of pairs, for quick checks (the run is then partial)
     collect_trajectories: bool = False  # set by `evaluate` when sinks are attached
     mode: str = "vector"  # or "sapien": agents observe {"state": float32[18], "image": uint8[H, W, 3]}
@@ -73,8 +74,9 @@ def agent_name(path: Path) -> str:
 
 
 def default_results_path(config: EvalConfig, suite: Suite) -> Path:
-    """`results/<agent>-<suite>.json` in the working directory."""
-    return Path("results") / f"{config.name or agent_name(config.agent_path)}-{suite.name}.json"
+    """`results/<agent>-<suite>.json` in the working directory (`...-partial.json` for a --pairs run)."""
+    partial = "-partial" if config.pairs is not None else ""
+    return Path("results") / f"{config.name or agent_name(config.agent_path)}-{suite.name}{partial}.json"
 
 
 def env_seed(suite_hash: str, pair: int, seed: int, episode: int) -> int:
@@ -217,6 +219,11 @@ def new_results(config: EvalConfig, suite: Suite) -> dict[str, Any]:
 def _resume_from(path: Path, fresh: dict[str, Any]) -> dict[str, Any]:
     """Continue an earlier run of the same agent, suite and settings."""
     old = read_results(path)
+    before, now = old.get("agent", {}), fresh["agent"]
+    if before.get("sha256") != now["sha256"]:
+        raise ResultsError(f"{path}: cannot resume: the agent file changed since this run started (sha256 "
+                           f"{str(before.get('sha256'))[:12]}… then, {now['sha256'][:12]}… now); results of two "
+                           f"different agents cannot be mixed: start a new run (--out FILE, or --overwrite)")
     for key in ("agent", "suite", "seeds", "episodes_per_pair", "pairs", "env"):
         if old.get(key) != fresh.get(key):
             raise ResultsError(f"{path}: cannot resume: {key} differs from this run "
@@ -224,18 +231,41 @@ def _resume_from(path: Path, fresh: dict[str, Any]) -> dict[str, Any]:
     return old
 
 
+REFERENCES = ("random", "random_task_specific", "max_expected", "best_fixed", "known_worker_optimum")
+
+
+def reference_scores(suite: Suite, pairs: Sequence[int]) -> dict[str, Any]:
+    """The exact reference lines on the score scale, over the given pairs (the whole suite: its summary)."""
+    def value(p: Any, key: str) -> float:
+        d = p.data
+        return d["baselines"][key] if key in d["baselines"] else d[key]
+
+    chosen = [suite.pairs[i] for i in pairs]
+    score = {k: float(np.mean([value(p, k) / p.max_expected for p in chosen])) for k in REFERENCES}
+    rts = score["random_task_specific"]
+    skill = {k: (v - rts) / (1.0 - rts) for k, v in score.items()}
+    return {"score": score, "skill": skill, "non_adaptive_gap": 1.0 - score["best_fixed"]}
+
+
 def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
-    """Add scores and baselines to a results dict whose units are all done."""
+    """Add scores and baselines to a results dict whose units are all done.
+
+    A partial run (--pairs) is compared with the references over its own pairs, never the whole suite's.
+    """
     units = results["units"] = sorted(results["units"], key=unit_key)
     normalised = np.array([u["normalised_returns"] for u in units])
     best = np.array([suite.pairs[u["pair"]].max_expected for u in units])
-    rts = suite.summary["score"]["random_task_specific"]
-    scores = score_run(normalised, best, rts)
+    partial = results.get("pairs") is not None
+    if partial:
+        baselines = {**reference_scores(suite, results["pairs"]), "pairs": list(results["pairs"])}
+    else:
+        baselines = {"score": suite.summary["score"], "skill": suite.summary["skill"],
+                     "non_adaptive_gap": suite.summary["non_adaptive_gap"]}
+    scores = score_run(normalised, best, baselines["score"]["random_task_specific"])
     results["scores"] = {**scores.to_dict(), "bootstrap": {"seed": BOOTSTRAP_SEED, "samples": BOOTSTRAP_SAMPLES,
                                                            "confidence": CONFIDENCE, "unit": "(pair, seed)"}}
-    results["baselines"] = {"score": suite.summary["score"], "skill": suite.summary["skill"],
-                            "non_adaptive_gap": suite.summary["non_adaptive_gap"]}
-    results["complete"] = results.get("pairs") is None
+    results["baselines"] = baselines
+    results["complete"] = not partial
     return results
 
 
@@ -262,13 +292,19 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
         config = replace(config, collect_trajectories=True)
     if not config.agent_path.exists():
         raise EvaluationError(f"agent file {config.agent_path} does not exist", "load")
+    for what, values in (("seeds", config.seeds), ("pairs", config.pairs or ())):
+        if len(set(values)) != len(values):
+            raise ValueError(f"{what} {list(values)} repeat a value: every (pair, seed) unit is played once")
+    if not config.seeds:
+        raise ValueError("at least one seed is needed")
     suite = load_suite(config.suite)
     out = config.out or default_results_path(config, suite)
     results = new_results(config, suite)
     if config.resume and out.exists():
         results = _resume_from(out, results)
-    elif out.exists() and not config.resume:
-        raise ResultsError(f"{out} already exists: pass --resume to continue it, or --out for another file")
+    elif out.exists() and not config.overwrite:
+        raise ResultsError(f"{out} already exists: pass --resume to continue that run, --overwrite to replace it, "
+                           f"or --out for another file")
     pairs = config.pairs if config.pairs is not None else tuple(range(len(suite.pairs)))
     bad = [p for p in pairs if not 0 <= p < len(suite.pairs)]
     if bad:
