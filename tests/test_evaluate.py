@@ -184,13 +184,13 @@ def test_oracle_refuses_to_run_unprivileged(tmp_path: Path) -> None:
 
 
 def test_references_are_over_the_pairs_played() -> None:
-    from mewa_bench.protocol.runner import reference_scores
+    from mewa_bench.design.references import summarise
 
     suite = load_suite("narrow-v1")
-    whole = reference_scores(suite, range(len(suite.pairs)))
+    whole = summarise([p.data for p in suite.pairs])
     for key, value in suite.summary["score"].items():
         assert whole["score"][key] == pytest.approx(value, abs=1e-11)
-    some = reference_scores(suite, [0, 1, 2])
+    some = summarise([p.data for p in suite.pairs[:3]])
     by_hand = np.mean([p.data["baselines"]["random"] / p.max_expected for p in suite.pairs[:3]])
     assert some["score"]["random"] == pytest.approx(by_hand)
     assert some["score"]["random"] != pytest.approx(whole["score"]["random"], abs=0.01)

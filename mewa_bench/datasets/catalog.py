@@ -15,7 +15,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from mewa_bench.design.suites import write_atomic
+from mewa_bench.design.suites import write_json_atomic
 
 CATALOG_FORMAT_VERSION = 1
 CATALOG_ENV = "MEWA_DATASETS_CATALOG"
@@ -140,11 +140,6 @@ def dataset_info(catalog: dict[str, Any], name: str) -> dict[str, Any]:
         known = sorted({f"{e['name']}@{e['version']}" for e in catalog["datasets"]})
         raise DatasetError(f"dataset {name!r} is not in the catalog; known: {', '.join(known) or 'none'}")
     return max(matches, key=lambda e: version_key(e["version"]))
-
-
-def write_json_atomic(path: Path, content: Any) -> None:
-    """Write JSON (sorted keys, one-space indent) atomically."""
-    write_atomic(path, json.dumps(content, indent=1, sort_keys=True) + "\n")
 
 
 def add_to_catalog(catalog_path: Path | str, entry: dict[str, Any]) -> dict[str, Any]:

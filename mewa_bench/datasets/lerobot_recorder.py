@@ -325,7 +325,7 @@ class LeRobotSink:
 
     def _write_meta(self) -> None:
         """Write `meta/mewa.json` atomically."""
-        from mewa_bench.datasets.catalog import write_json_atomic
+        from mewa_bench.design.suites import write_json_atomic
 
         write_json_atomic(self.root / MEWA_META_FILE, self.metadata())
 

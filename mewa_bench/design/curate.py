@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import mannwhitneyu
 
-DECIMALS = 12
+from mewa_bench.design.references import DECIMALS
+
 MIN_BEST_RETURN = 0.1  # candidates where even the best policy scores below this are dropped
 P_THRESHOLD = 0.05
 

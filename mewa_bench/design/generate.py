@@ -17,6 +17,7 @@ from mewa_bench.design import exact, optimum
 from mewa_bench.design.average_worker import DELTAS, EPSILONS, AverageWorkerDesign, design_average_worker
 from mewa_bench.design.curate import DECIMALS, MIN_BEST_RETURN, P_THRESHOLD, curate, mean_absolute_deviation, ratios_to_best
 from mewa_bench.design.policies import RANDOM, RANDOM_TASK_SPECIFIC, policy_names
+from mewa_bench.design.references import round_floats, summarise
 from mewa_bench.design.suites import SUITE_FORMAT_VERSION
 from mewa_bench.game.distributions import meta_test_candidates
 from mewa_bench.game.task import Task, default_sigma
@@ -48,17 +49,6 @@ SPECS = {
     "narrow": SuiteSpec("narrow-v1", "narrow", 1, None, 1, 16),
     "wide": SuiteSpec("wide-v1", "wide", 1, 20231105, 10, 8),
 }
-
-
-def _round(x: Any) -> Any:
-    """Round floats (also inside lists / arrays) to the suite's 12 decimals."""
-    if isinstance(x, np.ndarray):
-        return [_round(v) for v in x.tolist()]
-    if isinstance(x, (list, tuple)):
-        return [_round(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return round(float(x), DECIMALS) + 0.0  # + 0.0 turns -0.0 into 0.0
-    return x
 
 
 def reference_task(n: int, m: int, rewards: tuple[float, ...]) -> Task:
@@ -120,8 +110,8 @@ def task_entry(task: Task, design: AverageWorkerDesign, mad_here: float, curatio
     entry = task.to_dict()
     entry["design"] = {
         "eq1_objective": design.objective, "delta": design.delta, "epsilon": design.epsilon,
-        "mad_at_average_worker": _round(mad_here), "eq1_selection_mad": design.mad,
-        "eq1_candidates": [{"delta": c.delta, "epsilon": c.epsilon, "w": _round(c.w), "r": _round(c.r),
+        "mad_at_average_worker": round_floats(mad_here), "eq1_selection_mad": design.mad,
+        "eq1_candidates": [{"delta": c.delta, "epsilon": c.epsilon, "w": round_floats(c.w), "r": round_floats(c.r),
                             "objective": c.objective, "mad": c.mad} for c in design.candidates],
     }
     entry["curation"] = curation_info
@@ -145,37 +135,17 @@ def curate_task(task: Task, task_index: int, cap: int, progress: Progress) -> tu
     pairs = []
     for i, w in enumerate(chosen):
         pairs.append({
-            "task": task_index, "worker": _round(w), "phase": cur.phase[i],
-            "toptimal": _round(v[i]), "best_policy": names[int(np.argmax(v[i]))],
-            "baselines": {"random": _round(baselines[0, i]), "random_task_specific": _round(baselines[1, i]),
-                          "max_expected": _round(v[i].max())},
-            "best_fixed": _round(v[i, best_fixed]), "known_worker_optimum": _round(best_known[i]),
+            "task": task_index, "worker": round_floats(w), "phase": cur.phase[i],
+            "toptimal": round_floats(v[i]), "best_policy": names[int(np.argmax(v[i]))],
+            "baselines": {"random": round_floats(baselines[0, i]), "random_task_specific": round_floats(baselines[1, i]),
+                          "max_expected": round_floats(v[i].max())},
+            "best_fixed": round_floats(v[i, best_fixed]), "known_worker_optimum": round_floats(best_known[i]),
         })
     info = {"candidates": int(len(candidates)), "usable_candidates": cur.kept_candidates,
             "phase2_policy": names[cur.phase2_policy], "best_fixed_policy": names[best_fixed],
-            "best_fixed_mean_ratio": _round(ratio[:, best_fixed].mean()),
+            "best_fixed_mean_ratio": round_floats(ratio[:, best_fixed].mean()),
             "workers": len(chosen), "phase1_workers": cur.phase.count(1)}
     return info, pairs
-
-
-def summarise(pairs: list[dict]) -> dict[str, Any]:
-    """Suite-level means on the normalised and on the score scale (ratio to max-expected)."""
-    cols = {
-        "random": [p["baselines"]["random"] for p in pairs],
-        "random_task_specific": [p["baselines"]["random_task_specific"] for p in pairs],
-        "max_expected": [p["baselines"]["max_expected"] for p in pairs],
-        "best_fixed": [p["best_fixed"] for p in pairs],
-        "known_worker_optimum": [p["known_worker_optimum"] for p in pairs],
-    }
-    best = np.array(cols["max_expected"])
-    normalised = {k: _round(float(np.mean(v))) for k, v in cols.items()}
-    score = {k: _round(float(np.mean(np.array(v) / best))) for k, v in cols.items()}
-    s_rts = score["random_task_specific"]
-    return {
-        "pairs": len(pairs), "normalised": normalised, "score": score,
-        "non_adaptive_gap": _round(1.0 - score["best_fixed"]),
-        "skill": {k: _round((s - s_rts) / (1.0 - s_rts)) for k, s in score.items()},
-    }
 
 
 def generate_suite(kind: str, progress: Progress = lambda msg: None) -> dict[str, Any]:
@@ -200,9 +170,9 @@ def generate_suite(kind: str, progress: Progress = lambda msg: None) -> dict[str
         worst = non_adaptive_ratio(task_pairs)
         if kind == "wide" and worst >= ADAPTIVE_RATIO:
             rejected.append({"sample": samples - 1, "task": {k: v for k, v in raw.to_dict().items() if k != "rewards"},
-                             "best_single_policy_worst_ratio": _round(worst)})
+                             "best_single_policy_worst_ratio": round_floats(worst)})
             continue
-        info["best_single_policy_worst_ratio"] = _round(worst)
+        info["best_single_policy_worst_ratio"] = round_floats(worst)
         tasks.append(task_entry(task, design, mad_at(task, np.array(task.average_worker)), info))
         pairs += task_pairs
     return {

@@ -69,10 +69,14 @@ def content_hash(content: dict[str, Any]) -> str:
     return hashlib.sha256(canonical_json(body).encode()).hexdigest()
 
 
+def json_text(content: Any) -> str:
+    """The project's JSON files: sorted keys, one-space indent, no NaN, a final newline."""
+    return json.dumps(content, sort_keys=True, indent=1, allow_nan=False) + "\n"
+
+
 def suite_text(content: dict[str, Any]) -> str:
-    """The exact bytes of a suite file: content plus its hash, sorted keys, one-space indent."""
-    full = {**{k: v for k, v in content.items() if k != "sha256"}, "sha256": content_hash(content)}
-    return json.dumps(full, sort_keys=True, indent=1, allow_nan=False) + "\n"
+    """The exact bytes of a suite file: content plus its hash."""
+    return json_text({**{k: v for k, v in content.items() if k != "sha256"}, "sha256": content_hash(content)})
 
 
 def write_atomic(path: Path, text: str) -> None:
@@ -90,6 +94,11 @@ def write_atomic(path: Path, text: str) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_json_atomic(path: Path, content: Any) -> None:
+    """Write `json_text(content)` atomically."""
+    write_atomic(path, json_text(content))
 
 
 def shipped_path(name: str) -> Path:

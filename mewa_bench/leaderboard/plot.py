@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mewa_bench.leaderboard.board import Board, reference_rows
 from mewa_bench.protocol.runner import EPISODES_PER_PAIR
-
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
+from mewa_bench.reports.figures import save_png
 
 _REFERENCE_GREYS = ("#000000", "#444444", "#777777", "#999999", "#bbbbbb")
 
@@ -48,17 +43,3 @@ def plot_curves(board: Board, path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     save_png(fig, path)
-
-
-def save_png(fig: Figure, path: Path) -> None:
-    """Save a figure as PNG via a temporary sibling and rename, without timestamps or versions."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png", bbox_inches="tight", metadata={"Software": None})
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -19,7 +19,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from mewa_bench.design.suites import write_atomic
+from mewa_bench.design.suites import write_json_atomic
 
 SCHEMA_VERSION = 1
 PROTOCOL_VERSION = 1
@@ -41,7 +41,7 @@ def unit_key(unit: dict[str, Any]) -> tuple[int, int]:
 def write_results(path: Path, results: dict[str, Any]) -> None:
     """Write a results file atomically (units sorted), so a good file is never half-written."""
     results = {**results, "units": sorted(results["units"], key=unit_key)}
-    write_atomic(path, json.dumps(results, indent=1, sort_keys=True, allow_nan=False) + "\n")
+    write_json_atomic(path, results)
 
 
 def read_results(path: Path) -> dict[str, Any]:

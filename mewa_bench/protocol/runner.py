@@ -21,6 +21,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from mewa_bench.design.references import summarise
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.envs.mewa_env import DEFAULT_IMAGE_SIZE, ENV_VERSION, MewaEnv
 from mewa_bench.protocol.agent import Transition, agent_sha256
@@ -231,22 +232,6 @@ def _resume_from(path: Path, fresh: dict[str, Any]) -> dict[str, Any]:
     return old
 
 
-REFERENCES = ("random", "random_task_specific", "max_expected", "best_fixed", "known_worker_optimum")
-
-
-def reference_scores(suite: Suite, pairs: Sequence[int]) -> dict[str, Any]:
-    """The exact reference lines on the score scale, over the given pairs (the whole suite: its summary)."""
-    def value(p: Any, key: str) -> float:
-        d = p.data
-        return d["baselines"][key] if key in d["baselines"] else d[key]
-
-    chosen = [suite.pairs[i] for i in pairs]
-    score = {k: float(np.mean([value(p, k) / p.max_expected for p in chosen])) for k in REFERENCES}
-    rts = score["random_task_specific"]
-    skill = {k: (v - rts) / (1.0 - rts) for k, v in score.items()}
-    return {"score": score, "skill": skill, "non_adaptive_gap": 1.0 - score["best_fixed"]}
-
-
 def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
     """Add scores and baselines to a results dict whose units are all done.
 
@@ -257,7 +242,8 @@ def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
     best = np.array([suite.pairs[u["pair"]].max_expected for u in units])
     partial = results.get("pairs") is not None
     if partial:
-        baselines = {**reference_scores(suite, results["pairs"]), "pairs": list(results["pairs"])}
+        played = [suite.pairs[i].data for i in results["pairs"]]
+        baselines = {**summarise(played), "pairs": list(results["pairs"])}
     else:
         baselines = {"score": suite.summary["score"], "skill": suite.summary["skill"],
                      "non_adaptive_gap": suite.summary["non_adaptive_gap"]}

@@ -9,6 +9,7 @@ import numpy as np
 from mewa_bench.design.curate import ratios_to_best
 from mewa_bench.design.suites import SHIPPED_SUITES, Suite, load_suite, write_atomic
 from mewa_bench.game.palette import COLOR_NAMES
+from mewa_bench.reports.figures import save_png
 
 
 def policy_ratio_stats(suite: Suite, task_index: int) -> tuple[list[str], np.ndarray]:
@@ -41,10 +42,8 @@ def figure_policy_ratios(suite: Suite, task_index: int, path: Path) -> None:
     ax.set_title(f"{suite.name}, {suite.tasks[task_index].name}: no single policy is best for every worker")
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, metadata={"Software": None})  # no timestamps or versions: stable bytes
+    save_png(fig, path, tight=False)
     plt.close(fig)
-    tmp.replace(path)
 
 
 def _fmt(values, digits: int = 4) -> str:
