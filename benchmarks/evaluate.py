@@ -1,40 +1,96 @@
-"""Wall time of `evaluate` with a random agent on narrow-v1 (3 seeds): isolated vs in-process.
+"""Agent steps/s of `evaluate` (a trivial random agent, narrow-v1), against the env's own steps/s.
 
-The in-process run is the same-run baseline; the difference per env step is the cost of running
-the agent in its own process. SPEC target: isolated < 30 s.
+Baseline measured in the same run: the unwrapped `MewaEnv` stepped with random actions in this
+process. Then `evaluate` isolated with one lane (one pipe round trip per step, the protocol-1
+design), isolated with the default lanes (one round trip per step of all lanes), and in-process.
+Agent steps/s count the play only; the scoring (reference replays + bootstrap) is timed apart.
+SPEC / issue targets: isolated >= 100,000 agent steps/s; bayes-adaptive on narrow-v1 with the
+default protocol in under 60 s (`--bayes`).
 
-    .venv/bin/python benchmarks/evaluate.py
+    .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes]
 """
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 import time
 from pathlib import Path
 
-from mewa_bench.protocol.runner import EvalConfig, evaluate
+import numpy as np
 
-AGENT = Path(__file__).resolve().parents[1] / "tests" / "agents" / "delayed_fault_agent.py"
+from mewa_bench.design.suites import load_suite
+from mewa_bench.envs.mewa_env import MewaEnv
+from mewa_bench.protocol import runner
+from mewa_bench.protocol.runner import DEFAULT_LANES, DEFAULT_SEEDS, EvalConfig, evaluate
+
+REPO = Path(__file__).resolve().parents[1]
+AGENT = REPO / "tests" / "agents" / "delayed_fault_agent.py"
 
 
-def timed(isolated: bool, jobs: int = 1) -> tuple[float, int]:
-    with tempfile.TemporaryDirectory() as tmp:
-        config = EvalConfig(agent_path=AGENT, out=Path(tmp) / "r.json", agent_args={"fault": "none"},
-                            isolated=isolated, jobs=jobs)
+def env_steps_per_second(seconds: float = 1.0) -> float:
+    """Random-action steps/s of the unwrapped scalar env on the canonical narrow-v1 pair 0."""
+    suite = load_suite("narrow-v1")
+    env = MewaEnv(task=suite.tasks[0], worker=suite.pairs[0].worker.w)
+    actions = np.random.default_rng(0).integers(0, 4, size=1 << 16).tolist()
+    env.reset(seed=0)
+    steps, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        for a in actions[:4096]:
+            _, _, term, trunc, _ = env.step(a)
+            if term or trunc:
+                env.reset()
+        steps += 4096
+    return steps / (time.perf_counter() - start)
+
+
+def timed(agent: Path, seeds: tuple[int, ...], **kw) -> tuple[float, float, int]:
+    """(total seconds, scoring seconds, agent steps) of one evaluate run."""
+    scoring = [0.0]
+    finish = runner.finish
+
+    def timed_finish(results, suite):
         start = time.perf_counter()
-        results, _ = evaluate(config)
-        return time.perf_counter() - start, sum(sum(u["lengths"]) for u in results["units"])
+        try:
+            return finish(results, suite)
+        finally:
+            scoring[0] += time.perf_counter() - start
+
+    runner.finish = timed_finish
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            config = EvalConfig(agent_path=agent, out=Path(tmp) / "r.json", seeds=seeds, **kw)
+            start = time.perf_counter()
+            results, _ = evaluate(config)
+            total = time.perf_counter() - start
+    finally:
+        runner.finish = finish
+    return total, scoring[0], sum(sum(u["lengths"]) for u in results["units"])
 
 
 def main() -> None:
-    base, steps = timed(isolated=False)
-    iso, _ = timed(isolated=True)
-    par, _ = timed(isolated=True, jobs=2)
-    print(f"narrow-v1, 3 seeds, random agent: {steps:,} env steps")
-    print(f"{'in-process (baseline)':<34} {base:7.2f} s   1.00x")
-    print(f"{'isolated':<34} {iso:7.2f} s   {iso / base:.2f}x   (SPEC: < 30 s)")
-    print(f"{'isolated, --jobs 2':<34} {par:7.2f} s   {par / base:.2f}x")
-    print(f"isolation overhead per env step: {(iso - base) / steps * 1e6:.1f} us")
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--seeds", type=int, default=len(DEFAULT_SEEDS))
+    parser.add_argument("--bayes", action="store_true", help="also time bayes-adaptive with the default protocol")
+    args = parser.parse_args()
+    seeds = tuple(range(args.seeds))
+    env_rate = env_steps_per_second()
+    print(f"narrow-v1, {len(seeds)} seeds, random agent")
+    print(f"{'configuration':<40} {'agent steps/s':>14} {'x env':>7} {'play s':>7} {'scoring s':>9}")
+    print(f"{'MewaEnv unwrapped (baseline)':<40} {env_rate:>14,.0f} {1.0:>7.3f}")
+    runs = [("isolated, 1 lane (protocol 1 design)", dict(lanes=1)),
+            (f"isolated, {DEFAULT_LANES} lanes (default)", {}),
+            (f"isolated, {DEFAULT_LANES} lanes, --jobs 2", dict(jobs=2)),
+            (f"in-process, {DEFAULT_LANES} lanes", dict(isolated=False))]
+    for label, kw in runs:
+        total, scoring, steps = timed(AGENT, seeds, agent_args={"fault": "none"}, **kw)
+        rate = steps / (total - scoring)
+        print(f"{label:<40} {rate:>14,.0f} {rate / env_rate:>7.3f} {total - scoring:>7.2f} {scoring:>9.2f}")
+    if args.bayes:
+        agent = REPO / "submissions" / "bayes-adaptive" / "agent.py"
+        for label, kw in (("bayes-adaptive, default protocol", {}), ("bayes-adaptive, --jobs 2", dict(jobs=2))):
+            total, scoring, steps = timed(agent, DEFAULT_SEEDS, **kw)
+            print(f"{label:<40} {steps / (total - scoring):>14,.0f}   total {total:.1f} s (target < 60 s)")
 
 
 if __name__ == "__main__":

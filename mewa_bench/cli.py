@@ -41,11 +41,15 @@ def rollout(episodes: int = typer.Option(3, min=1, help="Episodes to play."),
     console.print(table)
 
 
+DEFAULT_SEED_COUNT = 50  # = len(protocol.runner.DEFAULT_SEEDS), kept here so --help imports nothing heavy
+
+
 @app.command()
 def evaluate(
     agent: Path = typer.Argument(..., help="Your agent: a .py file with make_agent(observation_space, action_space) or class Agent."),
     suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1) or path."),
-    seeds: str = typer.Option("3", help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2."),
+    seeds: str = typer.Option(str(DEFAULT_SEED_COUNT), help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; "
+                              "ranked runs use the protocol's default."),
     out: Path = typer.Option(None, help="Results file (default: results/<agent>-<suite>.json)."),
     name: str = typer.Option(None, help="Agent name in the results (default: from the file name)."),
     agent_arg: list[str] = typer.Option([], "--agent-arg", help="key=value passed to make_agent / Agent (repeatable)."),
@@ -55,6 +59,8 @@ def evaluate(
     memory_limit: str = typer.Option("4G", help="Agent address-space limit, e.g. 4G, 512M, or none."),
     privileged: bool = typer.Option(False, help="Tell the agent the hidden pair (reference agents only; never ranked)."),
     jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
+    lanes: int = typer.Option(64, min=1, help="Agent objects played side by side per process (one IPC round trip "
+                              "per step for all of them); 1 = one agent playing the units in order."),
     resume: bool = typer.Option(False, help="Continue an interrupted run in the same results file (same agent file)."),
     overwrite: bool = typer.Option(False, help="Replace an existing results file."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
@@ -71,7 +77,8 @@ def evaluate(
         agent_path=agent, suite=suite, seeds=_parse_seeds(seeds), out=out, name=name,
         agent_args=_parse_agent_args(agent_arg), checkpoint=checkpoint, isolated=not in_process,
         time_limit=time_limit or None, memory_limit=_parse_bytes(memory_limit), privileged=privileged,
-        jobs=jobs, resume=resume, overwrite=overwrite, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
+        jobs=jobs, lanes=lanes, resume=resume, overwrite=overwrite,
+        pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
         **_mode_options(mode, image_size))
     results, path, logs = _run_with_progress(config, log, log_dir, f"{agent.name} on {suite}",
                                              resume_hint="re-run the same command with --resume to continue")
@@ -279,7 +286,7 @@ app.add_typer(suites_app, name="suites")
 
 
 @app.command()
-def generate(kind: str = typer.Argument(..., help="narrow or wide"),
+def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wide-v2"),
              out: Path = typer.Option(None, "--out", help="Where to write the suite (default: ./<name>.json)."),
              check: bool = typer.Option(False, help="Also compare the result byte for byte with the shipped suite.")) -> None:
     """Regenerate a suite from the paper's task-design method (exact; reproduces the shipped file byte for byte)."""
@@ -306,10 +313,10 @@ def generate(kind: str = typer.Argument(..., help="narrow or wide"),
 @suites_app.command("list")
 def suites_list() -> None:
     """The shipped suites, their size, hash and non-adaptive gap."""
-    from mewa_bench.design.suites import SHIPPED_SUITES, load_suite
+    from mewa_bench.design.suites import ALL_SUITES, load_suite
 
     table = Table("suite", "tasks", "pairs", "non-adaptive gap", "sha256")
-    for name in SHIPPED_SUITES:
+    for name in ALL_SUITES:
         s = load_suite(name)
         table.add_row(name, str(len(s.tasks)), str(len(s.pairs)), f"{s.summary['non_adaptive_gap']:.4f}", s.sha256[:16])
     console.print(table)
@@ -331,9 +338,9 @@ def suites_show(name: str = typer.Argument(..., help="Suite name or path.")) -> 
 @suites_app.command("verify")
 def suites_verify(path: Path = typer.Argument(None, help="A suite file (default: every shipped suite).")) -> None:
     """Check that suite files match their recorded content hash."""
-    from mewa_bench.design.suites import SHIPPED_SUITES, load_suite
+    from mewa_bench.design.suites import ALL_SUITES, load_suite
 
-    for target in ([path] if path else list(SHIPPED_SUITES)):
+    for target in ([path] if path else list(ALL_SUITES)):
         suite = _or_exit(load_suite, target)
         console.print(f"[green]ok[/green] {suite.name}: content matches sha256 {suite.sha256[:16]}… ({suite.path})")
 

@@ -11,14 +11,17 @@ import pytest
 from mewa_bench.game import Task
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("MEWA_SHARED", REPO.parent / "shared"))
-TRACES = SHARED / "reference" / "traces-canonical.json"
+DATA = REPO / "tests" / "data"
+# A copy of shared/reference/traces-canonical.json ships here, so a fresh clone tests without shared/;
+# MEWA_SHARED points the tests at another shared/ folder (its copy must then be the same file).
+SHARED = Path(os.environ["MEWA_SHARED"]) if "MEWA_SHARED" in os.environ else None
+TRACES = SHARED / "reference" / "traces-canonical.json" if SHARED else DATA / "traces-canonical.json"
 
 
 def load_traces() -> list[dict]:
     """The reference traces recorded from the authors' original code."""
     if not TRACES.exists():
-        pytest.fail(f"reference traces not found at {TRACES} (set MEWA_SHARED to the shared/ folder)")
+        pytest.fail(f"reference traces not found at {TRACES} (unset MEWA_SHARED to use tests/data/)")
     return json.loads(TRACES.read_text())["traces"]
 
 

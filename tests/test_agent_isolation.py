@@ -286,3 +286,49 @@ def test_make_agent_runner_types_and_discrete_check():
         assert isinstance(agent, IsolatedAgent)
     with pytest.raises(ValueError, match="Discrete"):
         make_agent_runner(AGENTS / "class_agent.py", OBSERVATION_SPACE, spaces.Discrete(4, start=1))
+
+
+# -- lanes: several agent objects, one round trip per batch of calls --------------------------------
+
+@pytest.mark.parametrize("isolated", [True, False])
+def test_lanes_are_independent_agents_answering_one_batch(isolated: bool) -> None:
+    from mewa_bench.protocol.isolation import END_EPISODE, RESET_TASK, STEP
+
+    with runner("recording_agent.py", isolated, agent_args={"start": "1"}, lanes=3) as agents:
+        assert agents.lanes == 3
+        assert agents.batch([(0, RESET_TASK, (None, None)), (2, RESET_TASK, (None, None))]) == [None, None]
+        first = agents.batch([(0, STEP, (None, OBS)), (1, STEP, (None, OBS)), (2, STEP, (None, OBS))])
+        again = agents.batch([(0, STEP, (None, OBS)), (2, STEP, (None, OBS))])
+        assert first == [1, 1, 1] and again == [2, 2]  # each lane counts its own acts
+        transition = Transition(OBS, 2, -1.0, NEXT_OBS, True, False)
+        assert agents.batch([(1, END_EPISODE, (transition,))]) == [None]
+
+
+def test_a_hang_inside_a_batch_is_stopped_at_the_per_call_limit_and_named() -> None:
+    from mewa_bench.protocol.isolation import RESET_TASK, STEP
+
+    agent = faulty("hang", time_limit=1.0, lanes=4)
+    agent.batch([(lane, RESET_TASK, (None, None)) for lane in range(4)])
+    started = time.monotonic()
+    with pytest.raises(AgentError, match=r"observe\(\)/act\(\) did not finish within the time limit of 1 s") as caught:
+        agent.batch([(lane, STEP, (None, OBS)) for lane in range(4)])
+    assert caught.value.kind == "timeout" and caught.value.index == 0
+    assert time.monotonic() - started < 2.5  # the child's own timer, not 4 x the limit
+    assert_reaped(agent.pid)
+
+
+def test_reset_task_passes_the_unit_seed_only_to_agents_that_take_one(tmp_path: Path) -> None:
+    seeded = tmp_path / "seeded_agent.py"
+    seeded.write_text("class Agent:\n    def __init__(self, o, a):\n        self.seen = None\n"
+                      "    def reset_task(self, seed=None):\n        self.seen = seed\n"
+                      "    def act(self, obs):\n        return self.seen % 4\n")
+    plain = tmp_path / "plain_agent.py"
+    plain.write_text("class Agent:\n    def __init__(self, o, a):\n        pass\n"
+                     "    def reset_task(self):\n        pass\n    def act(self, obs):\n        return 3\n")
+    for isolated in (True, False):
+        with make_agent_runner(seeded, OBSERVATION_SPACE, ACTION_SPACE, isolated=isolated) as agent:
+            agent.reset_task(None, 4 * 1000 + 2)
+            assert agent.act(OBS) == 2
+        with make_agent_runner(plain, OBSERVATION_SPACE, ACTION_SPACE, isolated=isolated) as agent:
+            agent.reset_task(None, 7)  # no seed parameter: called without it
+            assert agent.act(OBS) == 3

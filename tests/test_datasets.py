@@ -117,7 +117,8 @@ def test_recorded_frames_equal_the_rollout(recorded):
         p = suite.pairs[pair]
         env = MewaEnv(task=suite.tasks[p.task_index], worker=p.worker.w)
         obs, _ = env.reset(seed=unit["env_seeds"][k], options={"task": suite.tasks[p.task_index],
-                                                                "worker": p.worker.w})
+                                                                "worker": p.worker.w,
+                                                                "luck_key": unit["env_seeds"][k]})
         for row in ep.itertuples(index=False):
             np.testing.assert_array_equal(np.asarray(row[df.columns.get_loc("observation.state")]), obs)
             obs, reward, terminated, truncated, _ = env.step(int(row.action))
@@ -155,7 +156,7 @@ def test_failed_run_still_leaves_a_valid_dataset(tmp_path):
     """The agent crashes in the second unit: the first unit's episodes are finalized and loadable."""
     sink = LeRobotSink(tmp_path / "ds", REPO_ID)
     config = EvalConfig(agent_path=AGENT, out=tmp_path / "r.json", agent_args={"fault": "raise", "after_units": "1"},
-                        seeds=(0,), pairs=(0, 1), isolated=False)
+                        seeds=(0,), pairs=(0, 1), isolated=False, lanes=1)
     with pytest.raises(EvaluationError):
         evaluate(config, sinks=[sink])
     ds = load_lerobot(tmp_path / "ds")

@@ -12,9 +12,10 @@ import pytest
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.leaderboard import LeaderboardReport, build_leaderboards
 from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, write_results
-from mewa_bench.protocol.scoring import score_run
+from mewa_bench.protocol.runner import DEFAULT_SEEDS
+from mewa_bench.protocol.scoring import score_units
 
-SEEDS = [0, 1, 2]
+SEEDS = list(DEFAULT_SEEDS)  # only runs with the protocol's default seeds are ranked
 K = 10
 # name -> (score level at episode 1, gain by episode 10, privileged)
 AGENTS = {"steady": (0.90, 0.0, False), "learner": (0.88, 0.08, False), "weak": (0.70, 0.01, False),
@@ -38,9 +39,7 @@ def make_results(suite: Suite, name: str, start: float, gain: float, privileged:
             units.append({"pair": pair.index, "seed": s, "task": pair.task_index, "env_seeds": list(range(K)),
                           "returns": normalised, "normalised_returns": normalised, "lengths": [20] * K,
                           "scores": [v / pair.max_expected for v in normalised]})
-    normalised = np.array([u["normalised_returns"] for u in units])
-    best = np.array([suite.pairs[u["pair"]].max_expected for u in units])
-    scores = score_run(normalised, best, suite.summary["score"]["random_task_specific"])
+    scores = score_units(suite, units, suite.summary["score"]["random_task_specific"])
     return {
         "schema_version": SCHEMA_VERSION, "protocol_version": PROTOCOL_VERSION, "complete": True,
         "agent": {"name": name, "file": f"submissions/{name}/agent.py", "sha256": f"{seed:02d}" + "ab" * 31,
@@ -49,7 +48,7 @@ def make_results(suite: Suite, name: str, start: float, gain: float, privileged:
         "env": {"id": suite.content["env_id"], "version": "v0", "mode": "vector"},
         "package_version": "0.1.0", "seeds": SEEDS, "episodes_per_pair": K, "pairs": None,
         "isolation": {"isolated": True, "time_limit": 10.0, "memory_limit": None},
-        "units": units, "scores": {**scores.to_dict(), "bootstrap": {"seed": 1, "samples": 2000}},
+        "units": units, "scores": scores.to_dict(),
         "baselines": {"score": suite.summary["score"], "skill": suite.summary["skill"]},
         "timing": {"started": "2025-03-01T10:00:00+00:00", "finished": "2025-03-02T11:30:00+00:00",
                    "wall_time": 12.5, "units": {}},
@@ -68,9 +67,11 @@ def invalid_variants(suite: Suite) -> dict[str, tuple[object, str]]:
     scores["mean"] = {**scores["mean"], "mean": scores["mean"]["mean"] + 0.01}
     tampered = {**base, "scores": scores}
     odd_types = {**base, "units": [5] + base["units"][1:]}
+    few_seeds = {**base, "seeds": SEEDS[:3], "units": [u for u in base["units"] if u["seed"] < 3]}
     return {"results-odd-types.json": (odd_types, "malformed"), "results-wrong-hash.json": (wrong_hash, "sha256"), "results-incomplete.json": (incomplete, "incomplete"),
-            "results-missing.json": (missing, "missing 3 of 48 units"),
+            "results-missing.json": (missing, f"missing {len(SEEDS)} of {16 * len(SEEDS)} units"),
             "results-schema99.json": (future, "schema_version 99"),
+            "results-few-seeds.json": (few_seeds, "default seeds"),
             "results-tampered.json": (tampered, "mean score"), "results-garbage.json": ("{not json", "not valid JSON")}
 
 
@@ -116,7 +117,8 @@ def test_csv_numbers_match_results(built, narrow: Suite) -> None:
     row = next(r for r in read_csv(out / "narrow-v1.csv") if r["agent"] == "learner")
     sc = results["scores"]
     assert float(row["mean_score"]) == pytest.approx(sc["mean"]["mean"], abs=1e-12)
-    assert float(row["mean_score"]) == pytest.approx(np.mean([u["scores"] for u in results["units"]]), abs=1e-12)
+    # the adjusted mean is not the raw one, whose value is kept in the file beside it
+    assert sc["raw"]["mean"]["mean"] == pytest.approx(np.mean([u["scores"] for u in results["units"]]), abs=1e-12)
     assert float(row["mean_score_low"]) == pytest.approx(sc["mean"]["low"], abs=1e-12)
     assert float(row["mean_score_high"]) == pytest.approx(sc["mean"]["high"], abs=1e-12)
     assert float(row["s_1"]) == pytest.approx(sc["curve"][0]["mean"], abs=1e-12)
@@ -124,7 +126,7 @@ def test_csv_numbers_match_results(built, narrow: Suite) -> None:
     assert float(row["adaptability"]) == pytest.approx(sc["adaptability"]["mean"], abs=1e-12)
     assert float(row["adaptability"]) == pytest.approx(0.08, abs=0.01)
     assert float(row["skill"]) == pytest.approx(sc["skill"]["mean"], abs=1e-12)
-    assert row["seeds"] == "3" and row["date"] == "2025-03-02" and row["package_version"] == "0.1.0"
+    assert row["seeds"] == str(len(SEEDS)) and row["date"] == "2025-03-02" and row["package_version"] == "0.1.0"
     assert row["agent_sha256"] == results["agent"]["sha256"]
 
 
@@ -157,8 +159,9 @@ def test_png_and_html(built) -> None:
         assert name in page
     assert 'src="narrow-v1.png"' in page and 'src="wide-v1.png"' in page
     assert "http" not in page and "<script" not in page
-    assert {p.name for p in report.written} == {"narrow-v1.md", "narrow-v1.csv", "narrow-v1.png", "wide-v1.md",
-                                                "wide-v1.csv", "wide-v1.png", "index.html"}
+    suites = ("narrow-v1", "wide-v1", "narrow-v2", "wide-v2")
+    assert {p.name for p in report.written} == {f"{s}.{ext}" for s in suites for ext in ("md", "csv", "png")} | {
+        "index.html"}
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
 
 
@@ -193,9 +196,11 @@ def test_committed_leaderboards_are_up_to_date_with_the_submissions(tmp_path: Pa
     repo = Path(__file__).resolve().parents[1]
     report = build_leaderboards(repo / "submissions", tmp_path)
     assert report.invalid == ()
-    for suite in ("narrow-v1", "wide-v1"):
-        names = {e.agent for e in report.entries[suite]}
-        assert names == {"random", "random-task-specific", "bayes-adaptive", "oracle-t-optimal"}
+    for suite in ("narrow-v1", "wide-v1", "narrow-v2", "wide-v2"):
+        names = {e.agent for e in report.entries[suite]}  # a user's own submissions may sit beside these
+        assert "bayes-explorer" in names
+        if suite.endswith("v1"):
+            assert names >= {"random", "random-task-specific", "bayes-adaptive", "oracle-t-optimal"}
         for ext in ("md", "csv"):
             assert (tmp_path / f"{suite}.{ext}").read_text() == (repo / "leaderboards" / f"{suite}.{ext}").read_text()
     assert (tmp_path / "index.html").read_text() == (repo / "leaderboards" / "index.html").read_text()
@@ -219,4 +224,7 @@ def test_a_changed_agent_file_invalidates_its_results(tmp_path: Path) -> None:
     shutil.copytree(repo / "submissions" / "random", sub)
     (sub / "agent.py").write_text((sub / "agent.py").read_text() + "\n# edited after evaluating\n")
     report = build_leaderboards(tmp_path / "subs", tmp_path / "lb")
-    assert len(report.invalid) == 2 and all("re-run the evaluation" in why for _, why in report.invalid)
+    results = sorted(sub.glob("results-*.json"))
+    assert len(results) == 4
+    assert sorted(path for path, _ in report.invalid) == results
+    assert all("re-run the evaluation" in why for _, why in report.invalid)

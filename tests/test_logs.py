@@ -162,7 +162,7 @@ def log_sinks(tmp: Path) -> list[Any]:
 def run_logged(tmp: Path, agent_args: dict[str, str], sinks: list[Any], **kwargs: Any) -> Path:
     """Evaluate the test agent on pairs 0 and 1 (seed 0) with the sinks attached; the results file."""
     config = EvalConfig(agent_path=AGENT, out=tmp / "r.json", agent_args=agent_args, seeds=(0,), pairs=(0, 1),
-                        isolated=False)
+                        isolated=False, lanes=1)  # one agent: units in order, as the fault arguments count them
     evaluate(config, sinks=sinks, **kwargs)
     return tmp / "r.json"
 

@@ -52,6 +52,7 @@ class AugmentedChain:
     ok_reward: np.ndarray  # int64 [B]
     bad: np.ndarray  # int64 [B]
     bad_reward: np.ndarray  # int64 [B]
+    action: np.ndarray  # int64 [B]: the colour handed over (for replays with coupled luck)
 
 
 @dataclass(frozen=True)
@@ -114,12 +115,12 @@ def augmented_chain(table: TransitionTable, policies: Sequence[Policy]) -> Augme
         for prob, a, next_memory in policies[p].choices(task, table.states[s], memory):
             ok, bad = next_ok[s][a], next_bad[s][a]
             rows.append((i, prob, mistake_type[s][a], node(p, ok, next_memory, d), progress[ok],
-                         node(p, bad, next_memory, d), progress[bad]))
+                         node(p, bad, next_memory, d), progress[bad], a))
         i += 1
     cols = list(zip(*rows))
     ints = [np.array(c, dtype=np.int64) for c in cols]
     return AugmentedChain(np.array(roots, dtype=np.int64), np.array(depth, dtype=np.int64), ints[0],
-                          np.array(cols[1], dtype=np.float64), ints[2], ints[3], ints[4], ints[5], ints[6])
+                          np.array(cols[1], dtype=np.float64), ints[2], ints[3], ints[4], ints[5], ints[6], ints[7])
 
 
 def _merged_branches(chain: AugmentedChain, cls: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

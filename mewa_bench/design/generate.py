@@ -1,8 +1,11 @@
-"""Generate the versioned suites (`narrow-v1`, `wide-v1`) from the paper's task-design method.
+"""Generate the versioned suites (`narrow-v1`, `wide-v1`, `narrow-v2`, `wide-v2`) from the task-design method.
 
 Pipeline per task: Eq. 1 average worker and rewards (shared by all tasks with the same N and M),
 curated meta-test workers, then every reference value of every curated pair, all exact. The
 output is a plain dict; `suites.suite_text` turns it into the exact bytes of the shipped file.
+v1 is the paper's design. v2 adds the overloaded worker family (non-decreasing workers) beside the
+paper's, a meta-train mixture that covers both families, and a phase 2 that maximises the
+non-adaptive gap (docs/suites.md).
 """
 
 from __future__ import annotations
@@ -15,11 +18,13 @@ import numpy as np
 
 from mewa_bench.design import exact, optimum
 from mewa_bench.design.average_worker import DELTAS, EPSILONS, AverageWorkerDesign, design_average_worker
-from mewa_bench.design.curate import DECIMALS, MIN_BEST_RETURN, P_THRESHOLD, curate, mean_absolute_deviation, ratios_to_best
+from mewa_bench.design.curate import (BEST_FIXED, DECIMALS, GAP, MIN_BEST_RETURN, P_THRESHOLD, curate,
+                                      mean_absolute_deviation, ratios_to_best)
 from mewa_bench.design.policies import RANDOM, RANDOM_TASK_SPECIFIC, policy_names
 from mewa_bench.design.references import round_floats, summarise
 from mewa_bench.design.suites import SUITE_FORMAT_VERSION
-from mewa_bench.game.distributions import meta_test_candidates
+from mewa_bench.game.distributions import (family_names, meta_test_candidates, overloaded_family, paper_family,
+                                           worker_families)
 from mewa_bench.game.task import Task, default_sigma
 
 GENERATOR_VERSION = 1
@@ -29,6 +34,14 @@ WORKER_BLOCK_TOTAL = 8  # wide tasks: a random composition of 8 into N - 1 posit
 # A task is adaptive when no single t-optimal policy reaches this ratio to the per-worker best on
 # every curated worker; sampled wide tasks that are not are rejected (and recorded) and resampled.
 ADAPTIVE_RATIO = 0.99
+# v2 choices (docs/suites.md): curated workers need a best t-optimal return >= 0.5 (so a pair's
+# score, return / max expected, stays <= 2 per episode) and, in phase 2, an L-inf distance >= 0.2
+# (4 grid steps) from every worker already chosen; meta-train: each family with probability 1/2,
+# then its box sampler or its cover sampler with probability 1/2, 0.01 clear of the 0.05 grid.
+V2_MIN_BEST_RETURN = 0.5
+V2_MIN_DISTANCE = 0.2
+GAP_TARGETS = {"narrow-v2": 0.06, "wide-v2": 0.04}  # issue 11: non-adaptive gap the v2 suites must reach
+V2_META_TRAIN = {"family_weights": [0.5, 0.5], "cover_weight": 0.5, "grid_step": GRID_STEP, "grid_clearance": 0.01}
 
 Progress = Callable[[str], None]
 
@@ -43,11 +56,17 @@ class SuiteSpec:
     seed: int | None
     n_tasks: int
     cap: int
+    families: bool = False  # v2: the paper's and the overloaded worker family
+    min_best_return: float = MIN_BEST_RETURN
+    phase2: str = BEST_FIXED
+    min_distance: float = 0.0
 
 
 SPECS = {
     "narrow": SuiteSpec("narrow-v1", "narrow", 1, None, 1, 16),
     "wide": SuiteSpec("wide-v1", "wide", 1, 20231105, 10, 8),
+    "narrow-v2": SuiteSpec("narrow-v2", "narrow", 2, None, 1, 16, True, V2_MIN_BEST_RETURN, GAP, V2_MIN_DISTANCE),
+    "wide-v2": SuiteSpec("wide-v2", "wide", 2, 20231105, 10, 8, True, V2_MIN_BEST_RETURN, GAP, V2_MIN_DISTANCE),
 }
 
 
@@ -99,10 +118,20 @@ def sample_wide_task(rng: np.random.Generator, index: int) -> Task:
     return Task(colors=colors, order=order, K=k, M=m, rewards=placeholder, worker_blocks=blocks, name=name)
 
 
-def designed(task: Task) -> tuple[Task, AverageWorkerDesign]:
-    """The task with Eq. 1's average worker, rewards and the default sigma."""
+def designed(task: Task, families: bool = False) -> tuple[Task, AverageWorkerDesign]:
+    """The task with Eq. 1's average worker, rewards and the default sigma (+ v2's worker distribution)."""
     d = average_worker_design(task.N, task.M)
-    return task.with_rewards(d.r).with_distribution(d.w, default_sigma(task.N)), d
+    out = task.with_rewards(d.r).with_distribution(d.w, default_sigma(task.N))
+    if families:
+        out = Task.from_dict({**out.to_dict(), "worker_distribution": v2_worker_distribution(out)})
+    return out, d
+
+
+def v2_worker_distribution(task: Task) -> dict[str, Any]:
+    """A v2 task's worker families (the paper's and its mirror, the overloaded one) and meta-train mixture."""
+    return {"families": [paper_family(task).to_dict(), overloaded_family(task).to_dict()],
+            "test_region": "grid workers outside the 2-sigma box of every family",
+            "meta_train": dict(V2_META_TRAIN)}
 
 
 def task_entry(task: Task, design: AverageWorkerDesign, mad_here: float, curation_info: dict) -> dict[str, Any]:
@@ -118,13 +147,13 @@ def task_entry(task: Task, design: AverageWorkerDesign, mad_here: float, curatio
     return entry
 
 
-def curate_task(task: Task, task_index: int, cap: int, progress: Progress) -> tuple[dict, list[dict]]:
+def curate_task(task: Task, task_index: int, spec: SuiteSpec, progress: Progress) -> tuple[dict, list[dict]]:
     """Curated workers of one task and every reference value of its pairs."""
     names = policy_names(task.N, baselines=False)
     candidates = meta_test_candidates(task, GRID_STEP)
     progress(f"{task.name}: exact returns of {len(names)} policies on {len(candidates):,} candidate workers")
     values = exact.expected_returns(task, names, candidates).T  # [C, P]
-    cur = curate(values, cap)
+    cur = curate(values, spec.cap, spec.min_best_return, spec.phase2, candidates, spec.min_distance)
     chosen = candidates[list(cur.selected)]
     progress(f"{task.name}: {len(chosen)} curated workers; baselines and known-worker optimum")
     v = np.round(values[list(cur.selected)], DECIMALS)
@@ -141,6 +170,8 @@ def curate_task(task: Task, task_index: int, cap: int, progress: Progress) -> tu
                           "max_expected": round_floats(v[i].max())},
             "best_fixed": round_floats(v[i, best_fixed]), "known_worker_optimum": round_floats(best_known[i]),
         })
+        if spec.families:
+            pairs[-1]["family"] = "+".join(family_names(task, w))
     info = {"candidates": int(len(candidates)), "usable_candidates": cur.kept_candidates,
             "phase2_policy": names[cur.phase2_policy], "best_fixed_policy": names[best_fixed],
             "best_fixed_mean_ratio": round_floats(ratio[:, best_fixed].mean()),
@@ -149,7 +180,7 @@ def curate_task(task: Task, task_index: int, cap: int, progress: Progress) -> tu
 
 
 def generate_suite(kind: str, progress: Progress = lambda msg: None) -> dict[str, Any]:
-    """Build the content of suite `kind` ("narrow" or "wide"), without its hash."""
+    """Build the content of suite `kind` (a key of SPECS: narrow, wide, narrow-v2, wide-v2), without its hash."""
     if kind not in SPECS:
         raise ValueError(f"unknown suite kind {kind!r}: expected one of {', '.join(SPECS)}")
     spec = SPECS[kind]
@@ -159,33 +190,41 @@ def generate_suite(kind: str, progress: Progress = lambda msg: None) -> dict[str
     rejected: list[dict] = []
     samples = 0
     while len(tasks) < spec.n_tasks:
-        if kind == "narrow":
+        if spec.kind == "narrow":
             raw = Task(**CANONICAL, rewards=(-1.0, -0.5, -0.2, -0.1), name="canonical-n4-k5-m3")
         else:
             raw = sample_wide_task(rng, len(tasks))
         samples += 1
         progress(f"{raw.name}: Eq. 1 average worker and rewards for N={raw.N}, M={raw.M}")
-        task, design = designed(raw)
-        info, task_pairs = curate_task(task, len(tasks), spec.cap, progress)
+        task, design = designed(raw, spec.families)
+        info, task_pairs = curate_task(task, len(tasks), spec, progress)
         worst = non_adaptive_ratio(task_pairs)
-        if kind == "wide" and worst >= ADAPTIVE_RATIO:
+        if spec.kind == "wide" and worst >= ADAPTIVE_RATIO:
             rejected.append({"sample": samples - 1, "task": {k: v for k, v in raw.to_dict().items() if k != "rewards"},
                              "best_single_policy_worst_ratio": round_floats(worst)})
             continue
         info["best_single_policy_worst_ratio"] = round_floats(worst)
         tasks.append(task_entry(task, design, mad_at(task, np.array(task.average_worker)), info))
+        if spec.families:
+            tasks[-1]["design"]["family_mad_at_average_worker"] = {
+                f.name: round_floats(mad_at(task, np.array(f.centre))) for f in worker_families(task)}
         pairs += task_pairs
+    generator = {
+        "command": f"mewa-bench generate {kind}", "generator_version": GENERATOR_VERSION, "seed": spec.seed,
+        "n_tasks": spec.n_tasks, "cap": spec.cap, "grid_step": GRID_STEP, "deltas": list(DELTAS),
+        "epsilons": list(EPSILONS), "p_threshold": P_THRESHOLD, "min_best_return": spec.min_best_return,
+        "decimals": DECIMALS, "adaptive_ratio": ADAPTIVE_RATIO, "tasks_sampled": samples,
+        "rejected_tasks": rejected,
+    }
+    if spec.families:
+        generator.update({"worker_families": ["paper", "overloaded"], "phase2": spec.phase2,
+                          "min_distance": spec.min_distance, "meta_train": dict(V2_META_TRAIN)})
     return {
         "format_version": SUITE_FORMAT_VERSION, "name": spec.name, "suite": spec.kind, "version": spec.version,
         "env_id": "mewa/MEWA-v0", "env_version": "v0",
-        "description": f"MEWA {spec.kind} suite: curated meta-test (task, worker) pairs with exact reference values",
-        "generator": {
-            "command": f"mewa-bench generate {kind}", "generator_version": GENERATOR_VERSION, "seed": spec.seed,
-            "n_tasks": spec.n_tasks, "cap": spec.cap, "grid_step": GRID_STEP, "deltas": list(DELTAS),
-            "epsilons": list(EPSILONS), "p_threshold": P_THRESHOLD, "min_best_return": MIN_BEST_RETURN,
-            "decimals": DECIMALS, "adaptive_ratio": ADAPTIVE_RATIO, "tasks_sampled": samples,
-            "rejected_tasks": rejected,
-        },
+        "description": f"MEWA {spec.kind} suite: curated meta-test (task, worker) pairs with exact reference values"
+                       + (" (paper and overloaded worker families)" if spec.families else ""),
+        "generator": generator,
         "policies": {str(n): list(policy_names(n, baselines=False)) for n in sorted({len(t["colors"]) for t in tasks})},
         "tasks": tasks, "pairs": pairs, "summary": summarise(pairs),
     }

@@ -10,6 +10,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from mewa_bench.envs.pairs import PairSource
+from mewa_bench.game import luck
 from mewa_bench.game.normalise import return_bounds
 from mewa_bench.game.palette import NUM_COLORS, OBS_SIZE
 from mewa_bench.game.table import transition_table
@@ -48,7 +49,8 @@ class MewaVectorEnv(VectorEnv):
 
     `infos` hold `progress` [num_envs] and, on steps where some episode ends, `episode_return` and
     `normalised_return` with their `_`-prefixed masks. `env.workers` and
-    `env.task_indices` give each sub-env's current pair.
+    `env.task_indices` give each sub-env's current pair, `env.luck_keys` each episode's luck key
+    (mistakes are drawn as in `MewaEnv`: the same key and actions give the same episode).
     """
 
     metadata: dict[str, Any] = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
@@ -75,6 +77,8 @@ class MewaVectorEnv(VectorEnv):
         self._t = np.zeros(num_envs, dtype=np.int64)
         self._return = np.zeros(num_envs)
         self._needs_reset = np.ones(num_envs, dtype=bool)
+        self._keys = np.zeros(num_envs, dtype=np.uint64)
+        self._draws = np.zeros((num_envs, NUM_COLORS), dtype=np.int64)  # second blocks so far, per colour
 
     @property
     def tasks(self) -> tuple[Task, ...]:
@@ -91,11 +95,18 @@ class MewaVectorEnv(VectorEnv):
         """Each sub-env's current worker, float64 [num_envs, 4] (unused components 0)."""
         return self._workers[:, :NUM_COLORS].copy()
 
+    @property
+    def luck_keys(self) -> np.ndarray:
+        """Each sub-env's current luck key, uint64 [num_envs] (see `MewaEnv`'s "Worker luck")."""
+        return self._keys.copy()
+
     def _start_episodes(self, rows: np.ndarray) -> None:
         task_idx, workers = self._source.sample(self.np_random, len(rows))
         self._task_idx[rows] = task_idx
         self._workers[rows, :NUM_COLORS] = workers
         self._state[rows] = self._stack.start[task_idx]
+        self._keys[rows] = self.np_random.integers(0, luck.KEY_BOUND, size=len(rows), dtype=np.uint64)
+        self._draws[rows] = 0
         self._t[rows] = 0
         self._return[rows] = 0.0
         self._needs_reset[rows] = False
@@ -131,10 +142,16 @@ class MewaVectorEnv(VectorEnv):
         st = self._stack
         flat = self._state * NUM_COLORS + a
         column = st.mistake_column[flat]
-        p = self._workers[self._rows, column]
-        mistake = self.np_random.random(self.num_envs) < p
-        nxt = np.where(mistake, st.next_mistake[flat], st.next_ok[flat])
         resetting = self._needs_reset.copy()
+        mistake = np.zeros(self.num_envs, dtype=bool)
+        draw = np.flatnonzero((column < NUM_COLORS) & ~resetting)  # second blocks: the luck decides
+        if draw.size:
+            colour = a[draw]
+            j = self._draws[draw, colour]
+            self._draws[draw, colour] = j + 1
+            u = luck.uniforms(self._keys[draw], colour, j)
+            mistake[draw] = u < self._workers[draw, column[draw]]
+        nxt = np.where(mistake, st.next_mistake[flat], st.next_ok[flat])
         if resetting.any():
             rows = np.flatnonzero(resetting)
             self._start_episodes(rows)

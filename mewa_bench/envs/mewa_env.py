@@ -9,6 +9,7 @@ import numpy as np
 from gymnasium import spaces
 
 from mewa_bench.envs.pairs import PairSource, as_task
+from mewa_bench.game import luck
 from mewa_bench.game.normalise import return_bounds
 from mewa_bench.game.palette import COLOR_NAMES, NUM_COLORS, OBS_SIZE
 from mewa_bench.game.table import transition_table
@@ -56,6 +57,13 @@ class MewaEnv(gym.Env):
     - Termination: every sub-goal has been completed.
     - Truncation: `task.T` (= 100) steps without termination.
 
+    ## Worker luck
+    Each episode draws a luck key (an int in [0, 2**63)) from the env's generator; the j-th time
+    the structure of colour c gets its second block, the mistake happens if `u(key, c, j) < w[x]`
+    (`mewa_bench.game.luck`). Each draw is an independent Bernoulli(w[x]), as the rules say; the key
+    only makes luck reproducible and shareable: two policies played with the same key meet the
+    same luck where their paths allow (`reset(options={"luck_key": k})`, `env.luck_key`).
+
     ## Information
     `info["progress"]` (sub-goals reached), `info["events"]` (a tuple of `Event`s: `mistake`,
     `structure_completed`, `structure_returned`, `subgoal_reached`), and at the end of an episode
@@ -75,10 +83,13 @@ class MewaEnv(gym.Env):
       scene rendered headless by SAPIEN (`image_size=(H, W)`, default 128 x 128); same rules.
       `render_mode="rgb_array"` returns that image, `render_mode="ansi"` a text picture.
     - `reset(options={"task": ..., "worker": ...})` switches to that pair (for this and later resets);
-      `reset(options={"keep_pair": True})` plays the current pair again (see `MetaEpisode`).
+      `reset(options={"keep_pair": True})` plays the current pair again (see `MetaEpisode`);
+      `reset(options={"luck_key": k})` plays this episode with luck key `k` (combines with the others).
 
     ## Version History
-    - v0: the rules of SPEC section 2, reproducing the authors' reference traces exactly.
+    - v0: the rules of SPEC section 2, reproducing the authors' reference traces exactly. Since
+      protocol 2 mistakes are drawn from a per-episode luck key (same game, same distributions; a
+      given seed gives other episodes than the protocol-1 code did).
     """
 
     metadata: dict[str, Any] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
@@ -139,14 +150,16 @@ class MewaEnv(gym.Env):
         super().reset(seed=seed)
         if seed is not None:
             self._pending.clear()
-        options = options or {}
-        unknown = set(options) - {"task", "worker", "keep_pair"}
+        options = dict(options or {})
+        unknown = set(options) - {"task", "worker", "keep_pair", "luck_key"}
         if unknown:
-            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected 'task', 'worker' or 'keep_pair'")
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; expected 'task', 'worker', 'keep_pair' "
+                             "or 'luck_key'")
+        key = luck.check_key(options.pop("luck_key")) if "luck_key" in options else None
         if options.get("keep_pair"):
             if len(options) > 1:
                 raise ValueError("reset option 'keep_pair' cannot be combined with 'task' or 'worker'")
-            return self._start()
+            return self._start(key)
         if "task" in options or "worker" in options:
             task = as_task(options["task"]) if "task" in options else self._task
             if "worker" not in options and (task.average_worker is None or task.sigma is None):
@@ -161,9 +174,18 @@ class MewaEnv(gym.Env):
         i, w = self._pending.pop()
         task = self._source.tasks[i]
         self._set_pair(task, Worker(tuple(w[: task.N])))
-        return self._start()
+        return self._start(key)
 
-    def _start(self) -> tuple[np.ndarray, dict]:
+    @property
+    def luck_key(self) -> int:
+        """The current episode's luck key (hidden from agents under the evaluation protocol)."""
+        return self._luck_key
+
+    def _start(self, key: int | None = None) -> tuple[np.ndarray, dict]:
+        if key is None:
+            key = int(self.np_random.integers(0, luck.KEY_BOUND))
+        self._luck_key = key
+        self._draws = [0] * NUM_COLORS
         self._s = 0
         self._t = 0
         self._return = 0.0
@@ -174,13 +196,16 @@ class MewaEnv(gym.Env):
         """Hand over one block of colour `action`."""
         if self._done:
             raise RuntimeError("step() called on a finished episode (or before reset()); call reset() first")
-        a = int(action)
-        if a != action or not 0 <= a < NUM_COLORS:
-            raise ValueError(f"invalid action {action!r}: expected an int in 0..{NUM_COLORS - 1}")
+        a = action if type(action) is int and 0 <= action < NUM_COLORS else as_action(action)
         f = self._fast
         s = self._s
         x = f.mistake_type[s][a]
-        if x >= 0 and self.np_random.random() < self._w[x]:
+        mistake = False
+        if x >= 0:  # the structure gets its second block: the j-th draw of colour a decides
+            j = self._draws[a]
+            self._draws[a] = j + 1
+            mistake = luck.uniform(self._luck_key, a, j) < self._w[x]
+        if mistake:
             s, events = f.next_mistake[s][a], f.events_mistake[s][a]
         else:
             s, events = f.next_ok[s][a], f.events_ok[s][a]
@@ -221,6 +246,16 @@ class MewaEnv(gym.Env):
         if self.render_mode == "rgb_array":
             return self._image(getattr(self, "_s", 0))
         return None
+
+
+def as_action(action: Any) -> int:
+    """An action as an int in 0..3; floats (even 2.0), bools and out-of-range values are errors."""
+    if isinstance(action, np.ndarray) and action.ndim == 0:
+        action = action[()]
+    if isinstance(action, (bool, np.bool_)) or not isinstance(action, (int, np.integer)) \
+            or not 0 <= action < NUM_COLORS:
+        raise ValueError(f"invalid action {action!r}: expected an int in 0..{NUM_COLORS - 1}")
+    return int(action)
 
 
 class _FastTable(NamedTuple):

@@ -10,7 +10,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from mewa_bench.game.distributions import sample_train_workers
+from mewa_bench.game.distributions import sample_meta_train_workers
 from mewa_bench.game.palette import NUM_COLORS
 from mewa_bench.game.task import Task, Worker
 
@@ -33,7 +33,11 @@ def default_tasks() -> tuple[Task, ...]:
 
 @dataclass
 class PairSource:
-    """Tasks to play and, if `worker` is None, meta-train workers sampled at every reset."""
+    """Tasks to play and, if `worker` is None, meta-train workers sampled at every reset.
+
+    Workers come from each task's own meta-train distribution: the v2 mixture for a task of a v2
+    suite (it carries a `worker_distribution`), else the paper's box sampler (SPEC section 3).
+    """
 
     tasks: tuple[Task, ...]
     worker: Worker | None = None
@@ -84,5 +88,5 @@ class PairSource:
         for i, task in enumerate(self.tasks):
             rows = np.flatnonzero(task_idx == i)
             if len(rows):
-                workers[rows, : task.N] = sample_train_workers(task, rng, len(rows), self.include_centre)
+                workers[rows, : task.N] = sample_meta_train_workers(task, rng, len(rows), self.include_centre)
         return task_idx, workers

@@ -35,6 +35,12 @@ class Row:
     adaptability_low: float | None
     adaptability_high: float | None
     skill: float
+    iqm: float | None = None
+    adapts: bool | None = None  # verdicts (None for reference lines)
+    beats_best_fixed: bool | None = None
+    vs_best_fixed: float | None = None  # paired difference with the best fixed policy, and its CI
+    vs_best_fixed_low: float | None = None
+    vs_best_fixed_high: float | None = None
     seeds: int | None = None
     date: str = ""
     package_version: str = ""
@@ -77,7 +83,11 @@ def entry_row(entry: Entry, rank: int | None, root_label: str) -> Row:
                mean=s.mean.mean, mean_low=s.mean.low, mean_high=s.mean.high,
                s_first=s.curve[0].mean, s_last=s.curve[-1].mean,
                adaptability=s.adaptability.mean, adaptability_low=s.adaptability.low,
-               adaptability_high=s.adaptability.high, skill=s.skill.mean, seeds=len(entry.seeds),
+               adaptability_high=s.adaptability.high, skill=s.skill.mean, iqm=s.iqm.mean,
+               adapts=s.verdicts["adapts"], beats_best_fixed=s.verdicts["beats_best_fixed"],
+               vs_best_fixed=s.comparisons["best_fixed"].difference.mean,
+               vs_best_fixed_low=s.comparisons["best_fixed"].difference.low,
+               vs_best_fixed_high=s.comparisons["best_fixed"].difference.high, seeds=len(entry.seeds),
                date=entry.date, package_version=entry.package_version, agent_sha256=entry.agent_sha256,
                file=f"{root_label}/{entry.path.parent.name}/{entry.path.name}")
 

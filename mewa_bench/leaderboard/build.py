@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from mewa_bench.design.suites import SHIPPED_SUITES, load_suite, write_atomic
+from mewa_bench.design.suites import ALL_SUITES, load_suite, write_atomic
 from mewa_bench.leaderboard.board import Board, make_board
 from mewa_bench.leaderboard.plot import plot_curves
 from mewa_bench.leaderboard.render import csv_text, index_html, markdown
@@ -31,7 +31,7 @@ def collect(submissions_dir: Path) -> tuple[dict[str, list[Entry]], list[tuple[P
     if not submissions_dir.is_dir():
         raise NotADirectoryError(f"{submissions_dir}: no such submissions folder")
     suites = SuiteCache()
-    entries: dict[str, list[Entry]] = {name: [] for name in SHIPPED_SUITES}
+    entries: dict[str, list[Entry]] = {name: [] for name in ALL_SUITES}
     invalid: list[tuple[Path, str]] = []
     for path in find_results_files(submissions_dir):
         try:
@@ -39,7 +39,12 @@ def collect(submissions_dir: Path) -> tuple[dict[str, list[Entry]], list[tuple[P
         except InvalidResults as e:
             invalid.append((path, str(e)))
         else:
-            entries[entry.suite].append(entry)
+            twin = next((e for e in entries[entry.suite] if e.path.parent == entry.path.parent), None)
+            if twin is not None:
+                invalid.append((path, f"{twin.path.name} of the same submission folder is already on the "
+                                      f"{entry.suite} board: one row per submission"))
+            else:
+                entries[entry.suite].append(entry)
     return entries, invalid
 
 
@@ -57,7 +62,7 @@ def build_leaderboards(submissions_dir: Path, out_dir: Path) -> LeaderboardRepor
     """Validate `submissions_dir/*/` results files and write every shipped suite's leaderboard to `out_dir`."""
     submissions_dir, out_dir = Path(submissions_dir), Path(out_dir)
     entries, invalid = collect(submissions_dir)
-    boards = [make_board(load_suite(name), entries[name], submissions_dir.name) for name in SHIPPED_SUITES]
+    boards = [make_board(load_suite(name), entries[name], submissions_dir.name) for name in ALL_SUITES]
     written: list[Path] = []
     files: dict[str, tuple[str, str, str]] = {}
     for board in boards:

@@ -8,22 +8,29 @@ import io
 
 from mewa_bench.leaderboard.board import PRIVILEGED, REFERENCE, Board, Row
 
-HEADER = ("rank", "agent", "mean score [95% CI]", "s_1", "s_10", "adaptability [95% CI]", "skill", "seeds",
-          "date", "package version", "agent sha256")
-CSV_HEADER = ("rank", "agent", "kind", "mean_score", "mean_score_low", "mean_score_high", "s_1", "s_10",
-              "adaptability", "adaptability_low", "adaptability_high", "skill", "seeds", "date", "package_version",
+HEADER = ("rank", "agent", "mean score [95% CI]", "IQM", "s_1", "s_10", "adaptability [95% CI]",
+          "vs best fixed [95% CI]", "adapts", "beats best fixed", "skill", "seeds", "date", "package version",
+          "agent sha256")
+CSV_HEADER = ("rank", "agent", "kind", "mean_score", "mean_score_low", "mean_score_high", "iqm", "s_1", "s_10",
+              "adaptability", "adaptability_low", "adaptability_high", "vs_best_fixed", "vs_best_fixed_low",
+              "vs_best_fixed_high", "adapts", "beats_best_fixed", "skill", "seeds", "date", "package_version",
               "agent_sha256", "file")
 UNRANKED = "—"
-_NUMERIC = frozenset({0, 2, 3, 4, 5, 6, 7})  # HEADER columns aligned right
+_NUMERIC = frozenset({0, 2, 3, 4, 5, 6, 7, 10, 11})  # HEADER columns aligned right
 SHORT_SHA = 12
 
 EXPLANATION = (
     ("score", "s_k = the normalised return of episode k divided by the pair's max-expected baseline (1.0 = as "
               "good as the best t-optimal policy that knows the worker), averaged over pairs x seeds. The mean "
-              "score averages s_1..s_10; 95% percentile bootstrap CIs are over (pair, seed) units, recomputed "
+              "score averages s_1..s_10; 95% percentile bootstrap CIs resample seeds within each pair, recomputed "
               "from each results file's units."),
     ("adaptability", "mean(s_10 - s_1): how much an agent improves over the 10 episodes with the same "
                      "hidden worker."),
+    ("protocol 2", "worker luck is coupled to each episode's seed and the reference policies are replayed on "
+                   "the same seeds as control variates (unbiased, far less noise); CIs resample seeds within "
+                   "each pair. IQM: interquartile mean of per-unit scores. Verdicts: adapts = adaptability CI "
+                   "above 0; beats best fixed = the paired difference with the best fixed policy has its CI "
+                   "above 0 (docs/protocol.md)."),
     ("skill", "(S - S_rts) / (1 - S_rts), with S the mean score and S_rts that of the random task-specific "
               "baseline: 0 = knows the game but ignores the worker, 1 = the best t-optimal policy per worker."),
 )
@@ -37,6 +44,11 @@ def _num(value: float | None) -> str:
 def _with_ci(value: float, low: float | None, high: float | None) -> str:
     """`0.9512 [0.9401, 0.9600]`, or the bare value for exact reference lines."""
     return _num(value) if low is None or high is None else f"{value:.4f} [{low:.4f}, {high:.4f}]"
+
+
+def _verdict(value: bool | None) -> str:
+    """yes / no for agents, empty for reference lines."""
+    return "" if value is None else ("yes" if value else "no")
 
 
 def _rank(row: Row) -> str:
@@ -56,8 +68,10 @@ def _name(row: Row) -> str:
 
 def cells(row: Row) -> list[str]:
     """The displayed cells of a row, in HEADER order."""
-    return [_rank(row), _name(row), _with_ci(row.mean, row.mean_low, row.mean_high), _num(row.s_first),
-            _num(row.s_last), _with_ci(row.adaptability, row.adaptability_low, row.adaptability_high),
+    return [_rank(row), _name(row), _with_ci(row.mean, row.mean_low, row.mean_high), _num(row.iqm),
+            _num(row.s_first), _num(row.s_last), _with_ci(row.adaptability, row.adaptability_low, row.adaptability_high),
+            "" if row.vs_best_fixed is None else _with_ci(row.vs_best_fixed, row.vs_best_fixed_low, row.vs_best_fixed_high),
+            _verdict(row.adapts), _verdict(row.beats_best_fixed),
             _num(row.skill), "" if row.seeds is None else str(row.seeds), row.date, row.package_version,
             row.agent_sha256[:SHORT_SHA]]
 
@@ -104,8 +118,10 @@ def csv_text(board: Board) -> str:
     writer.writerow(CSV_HEADER)
     for r in board.rows:
         writer.writerow(["" if r.rank is None else r.rank, r.name, r.kind, _raw(r.mean), _raw(r.mean_low),
-                         _raw(r.mean_high), _raw(r.s_first), _raw(r.s_last), _raw(r.adaptability),
-                         _raw(r.adaptability_low), _raw(r.adaptability_high), _raw(r.skill), _raw(r.seeds),
+                         _raw(r.mean_high), _raw(r.iqm), _raw(r.s_first), _raw(r.s_last), _raw(r.adaptability),
+                         _raw(r.adaptability_low), _raw(r.adaptability_high), _raw(r.vs_best_fixed),
+                         _raw(r.vs_best_fixed_low), _raw(r.vs_best_fixed_high), _verdict(r.adapts),
+                         _verdict(r.beats_best_fixed), _raw(r.skill), _raw(r.seeds),
                          r.date, r.package_version, r.agent_sha256, r.file])
     return out.getvalue()
 

@@ -18,10 +18,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from mewa_bench.design.suites import SHIPPED_SUITES, Suite, SuiteError, load_suite
+from mewa_bench.design.suites import ALL_SUITES, Suite, SuiteError, load_suite
 from mewa_bench.protocol.results import PROTOCOL_VERSION, ResultsError, read_results
-from mewa_bench.protocol.runner import EPISODES_PER_PAIR
-from mewa_bench.protocol.scoring import Scores, score_run
+from mewa_bench.protocol.runner import DEFAULT_SEEDS, EPISODES_PER_PAIR
+from mewa_bench.protocol.scoring import Scores, episode_scores, score_units
 
 TOLERANCE = 1e-9
 _SHOWN = 5  # how many missing or unexpected units a reason lists
@@ -72,8 +72,8 @@ class SuiteCache:
 
     def get(self, name: Any) -> Suite:
         """The shipped suite `name`; only shipped names, never a path taken from a results file."""
-        if not isinstance(name, str) or name not in SHIPPED_SUITES:
-            raise InvalidResults(f"suite {name!r} is not a shipped suite ({', '.join(SHIPPED_SUITES)})")
+        if not isinstance(name, str) or name not in ALL_SUITES:
+            raise InvalidResults(f"suite {name!r} is not a shipped suite ({', '.join(ALL_SUITES)})")
         if name not in self._suites:
             try:
                 self._suites[name] = load_suite(name)
@@ -108,11 +108,15 @@ def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
         raise InvalidResults(f"suite sha256 {results['suite']['sha256']} is not the shipped {suite.name}'s "
                              f"{suite.sha256}: the run used a different or modified suite")
     if results["protocol_version"] != PROTOCOL_VERSION:
-        raise InvalidResults(f"protocol_version {results['protocol_version']!r} is not {PROTOCOL_VERSION}")
+        raise InvalidResults(f"protocol {results['protocol_version']!r} results are not ranked beside protocol "
+                             f"{PROTOCOL_VERSION} ones: re-run the evaluation with this version of mewa-bench")
     if results["episodes_per_pair"] != EPISODES_PER_PAIR:
         raise InvalidResults(f"episodes_per_pair is {results['episodes_per_pair']!r}; the protocol plays "
                              f"{EPISODES_PER_PAIR} per pair")
     seeds = _seeds(results["seeds"])
+    if seeds != DEFAULT_SEEDS:
+        raise InvalidResults(f"ranked runs use the protocol's default seeds 0..{len(DEFAULT_SEEDS) - 1}; this run used "
+                             f"{len(seeds)} seed(s) {_short(seeds)}: re-run without --seeds")
     units = _covering_units(results["units"], suite, seeds)
     scores = _verified_scores(units, suite, results["scores"])
     agent = results["agent"]
@@ -141,6 +145,11 @@ def _seeds(seeds: Any) -> tuple[int, ...]:
     if len(set(seeds)) != len(seeds):
         raise InvalidResults(f"`seeds` has repeats: {seeds!r}")
     return tuple(seeds)
+
+
+def _short(values: tuple[int, ...]) -> str:
+    """A seed list, abbreviated when long."""
+    return str(list(values)) if len(values) <= _SHOWN else f"[{', '.join(map(str, values[:_SHOWN]))}, ...]"
 
 
 def _covering_units(units: list[dict[str, Any]], suite: Suite, seeds: tuple[int, ...]) -> list[dict[str, Any]]:
@@ -184,19 +193,19 @@ def _verified_scores(units: list[dict[str, Any]], suite: Suite, stored: dict[str
     best = np.array([suite.pairs[u["pair"]].max_expected for u in units])
     if not (np.isfinite(normalised).all() and np.isfinite(unit_scores).all()):
         raise InvalidResults("units contain non-finite returns or scores")
-    off = np.argwhere(np.abs(unit_scores - normalised / best[:, None]) > TOLERANCE)
+    off = np.argwhere(np.abs(unit_scores - episode_scores(normalised, best)) > TOLERANCE)
     if len(off):
         u, k = off[0]
-        raise InvalidResults(f"unit (pair {units[u]['pair']}, seed {units[u]['seed']}) episode {k + 1}: score is not "
+        raise InvalidResults(f"unit (pair {units[u]['pair']}, seed {units[u]['seed']}) episode {k}: score is not "
                              f"normalised return / the pair's max-expected baseline")
-    headline = float(unit_scores.mean())
-    _agree("mean score", stored["mean"]["mean"], headline)
-    scores = score_run(normalised, best, suite.summary["score"]["random_task_specific"])
+    _agree("raw mean score", stored["raw"]["mean"]["mean"], float(unit_scores.mean()))
+    scores = score_units(suite, units, suite.summary["score"]["random_task_specific"])
     curve = stored["curve"]
     if len(curve) != len(scores.curve):
         raise InvalidResults(f"stored curve has {len(curve)} points, expected {len(scores.curve)}")
     for k, (point, estimate) in enumerate(zip(curve, scores.curve)):
         _agree(f"s_{k + 1}", point["mean"], estimate.mean)
+    _agree("mean score", stored["mean"]["mean"], scores.mean.mean)
     _agree("adaptability", stored["adaptability"]["mean"], scores.adaptability.mean)
     return scores
 

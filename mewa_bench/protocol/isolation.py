@@ -9,6 +9,12 @@ parent never unpickles anything the agent's process produced.
 Per env step there is one round trip: `step(previous_transition, observation)` calls the agent's
 `observe(previous_transition)` (unless None), then `act(observation)`; the episode's last
 transition goes with `end_episode(final_transition)`.
+
+Lanes (the fast path of the evaluation runner): a runner may hold several independent agent
+objects, `lanes` of them, each built from the file as the agent would be alone. `batch(calls)`
+sends one call per lane in one round trip, so the per-step cost of crossing the process boundary
+is shared by as many units as there are lanes. In the child every call has its own time limit
+(an interval timer), the parent waiting for the whole batch only as a backstop.
 """
 
 from __future__ import annotations
@@ -24,12 +30,15 @@ import struct
 import subprocess
 import sys
 import time
+import functools
+import inspect
 import traceback
 import weakref
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Callable, Protocol, Self
+from typing import Any, Callable, Protocol, Self, Sequence
 
+import numpy as np
 from gymnasium import spaces
 
 from mewa_bench.protocol.agent import OPTIONAL_METHODS, AgentLoadError, Transition, check_action, load_agent
@@ -47,16 +56,27 @@ _HEADER = struct.Struct("<I")
 _CHILD_COMMAND = "from mewa_bench.protocol.isolation import _child_main; _child_main()"
 _PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
 
-_STEP, _RESET_TASK, _OBSERVE, _END_EPISODE = range(4)
-_READY, _OK, _ACTION, _ERROR = b"R", b"K", b"A", b"E"
+_STEP, _RESET_TASK, _OBSERVE, _END_EPISODE, _BATCH, _STEP_ROW = range(6)
+_READY, _OK, _ACTION, _ERROR, _BATCHED = b"R", b"K", b"A", b"E", b"B"
+CALL_NAMES = {_STEP: "observe()/act()", _RESET_TASK: "reset_task()", _OBSERVE: "observe()",
+              _END_EPISODE: "end_episode()"}
+RESET_TASK, STEP, END_EPISODE = _RESET_TASK, _STEP, _END_EPISODE  # the calls a batch may carry
 
 
 class AgentError(RuntimeError):
     """The agent failed; `kind` is one of ERROR_KINDS and the message says what happened."""
 
-    def __init__(self, kind: str, message: str) -> None:
+    def __init__(self, kind: str, message: str, index: int | None = None) -> None:
         super().__init__(message)
         self.kind = kind
+        self.index = index  # in a batch: the position of the call that failed
+
+
+class _CallTimeout(BaseException):
+    """Raised in the agent process by the interval timer when one call overruns its time limit."""
+
+
+Call = tuple[int, int, tuple]  # (lane, operation, arguments) of one call in a batch
 
 
 class AgentRunner(Protocol):
@@ -66,9 +86,14 @@ class AgentRunner(Protocol):
     """
 
     name: str
+    lanes: int
 
-    def reset_task(self, hidden: dict | None = None) -> None:
-        """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only)."""
+    def reset_task(self, hidden: dict | None = None, seed: int | None = None) -> None:
+        """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only; `seed` for agents that take one)."""
+
+    def batch(self, calls: Sequence[Call]) -> list[int | None]:
+        """One call per lane (lane, RESET_TASK|STEP|END_EPISODE, args); actions for steps, None otherwise."""
+        ...
 
     def step(self, transition: Transition | None, observation: Any) -> int:
         """Observe the previous step's `transition` (None on an episode's first step), then act."""
@@ -100,20 +125,21 @@ def make_agent_runner(path: str | Path, observation_space: Any, action_space: sp
                       agent_args: dict[str, str] | None = None, checkpoint: str | None = None, *,
                       isolated: bool = True, time_limit: float | None = DEFAULT_TIME_LIMIT,
                       load_time_limit: float | None = DEFAULT_LOAD_TIME_LIMIT,
-                      memory_limit: int | None = DEFAULT_MEMORY_LIMIT) -> AgentRunner:
+                      memory_limit: int | None = DEFAULT_MEMORY_LIMIT, lanes: int = 1) -> AgentRunner:
     """Load the agent file at `path` into an IsolatedAgent, or an InProcessAgent if not `isolated`.
 
-    A file that does not load raises AgentError of kind "load" with AgentLoadError's message. The
-    limits apply to the isolated runner only.
+    `lanes` independent agent objects are built (see `batch`). A file that does not load raises
+    AgentError of kind "load" with AgentLoadError's message. The limits apply to the isolated
+    runner only.
     """
     if isolated:
         return IsolatedAgent(path, observation_space, action_space, agent_args, checkpoint, time_limit=time_limit,
-                             load_time_limit=load_time_limit, memory_limit=memory_limit)
+                             load_time_limit=load_time_limit, memory_limit=memory_limit, lanes=lanes)
     try:
-        agent = load_agent(path, observation_space, action_space, agent_args, checkpoint)
+        agents = [load_agent(path, observation_space, action_space, agent_args, checkpoint) for _ in range(lanes)]
     except AgentLoadError as exc:
         raise AgentError("load", str(exc)) from exc
-    return InProcessAgent(agent, action_space, name=Path(path).name)
+    return InProcessAgent(agents[0], action_space, name=Path(path).name, more_lanes=agents[1:])
 
 
 class _AgentCalls:
@@ -126,6 +152,7 @@ class _AgentCalls:
         self._act: Callable[[Any], object] = agent.act  # type: ignore[attr-defined]
         self._reset_task, self._observe, self._end_episode = (getattr(agent, method, None) or _no_op
                                                               for method in OPTIONAL_METHODS)
+        self._takes_seed = _accepts_keyword(self._reset_task, "seed")
 
     def step(self, transition: Transition | None, observation: Any) -> int:
         """observe(transition) unless None, then act(observation), checked."""
@@ -144,12 +171,27 @@ class _AgentCalls:
         except ValueError as exc:
             raise AgentError("invalid_action", f"agent {self.name}: {exc}") from None
 
-    def reset_task(self, hidden: dict | None = None) -> None:
-        """The agent's reset_task(), or reset_task(hidden) in a privileged run."""
-        if hidden is None:
-            self._call("reset_task", self._reset_task)
+    def reset_task(self, hidden: dict | None = None, seed: int | None = None) -> None:
+        """The agent's reset_task(), reset_task(hidden) in a privileged run, with seed=... if it takes one."""
+        args = () if hidden is None else (hidden,)
+        if seed is not None and self._takes_seed:
+            self._call("reset_task", functools.partial(self._reset_task, seed=seed), *args)
         else:
-            self._call("reset_task", self._reset_task, hidden)
+            self._call("reset_task", self._reset_task, *args)
+
+    def answer(self, operation: int, args: tuple) -> bytes:
+        """Carry out one call of a batch; the reply token."""
+        if operation == _STEP:
+            return _ACTION + b"%d" % self.step(*args)
+        if operation == _RESET_TASK:
+            self.reset_task(*args)
+        elif operation == _END_EPISODE:
+            self.end_episode(*args)
+        elif operation == _OBSERVE:
+            self.observe(*args)
+        else:
+            raise AgentError("crash", f"unknown request {operation!r}")
+        return _OK
 
     def observe(self, transition: Transition) -> None:
         """The agent's observe(transition)."""
@@ -219,10 +261,30 @@ class InProcessAgent(_FailureTracking):
     hanging agent hangs the evaluation) and the agent shares this process, env included.
     """
 
-    def __init__(self, agent: object, action_space: spaces.Discrete, name: str = "agent") -> None:
+    def __init__(self, agent: object, action_space: spaces.Discrete, name: str = "agent",
+                 more_lanes: Sequence[object] = ()) -> None:
         self.agent = agent
         self.name = name
         self._calls = _AgentCalls(agent, _num_actions(action_space), name, memory_limit=None)
+        self._lanes = [self._calls] + [_AgentCalls(a, _num_actions(action_space), name, None) for a in more_lanes]
+
+    @property
+    def lanes(self) -> int:
+        """How many independent agent objects this runner holds."""
+        return len(self._lanes)
+
+    def batch(self, calls: Sequence[Call]) -> list[int | None]:
+        """Carry out one call per lane; actions for steps, None otherwise (AgentError.index: which call failed)."""
+        self._check_usable()
+        replies: list[int | None] = []
+        for i, (lane, operation, args) in enumerate(calls):
+            try:
+                token = self._lanes[lane].answer(operation, args)
+            except AgentError as err:
+                self._failure = AgentError(err.kind, str(err), i)
+                raise self._failure from None
+            replies.append(int(token[1:]) if token[:1] == _ACTION else None)
+        return replies
 
     def step(self, transition: Transition | None, observation: Any) -> int:
         """Observe the previous step's `transition` (None on an episode's first step), then act."""
@@ -237,9 +299,9 @@ class InProcessAgent(_FailureTracking):
         """The agent's action for `observation`."""
         return self.step(None, observation)
 
-    def reset_task(self, hidden: dict | None = None) -> None:
+    def reset_task(self, hidden: dict | None = None, seed: int | None = None) -> None:
         """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only)."""
-        self._guarded(self._calls.reset_task, hidden)
+        self._guarded(self._calls.reset_task, hidden, seed)
 
     def observe(self, transition: Transition) -> None:
         """Report one step's outcome to the agent."""
@@ -272,8 +334,11 @@ class IsolatedAgent(_FailureTracking):
     def __init__(self, path: str | Path, observation_space: Any, action_space: spaces.Discrete,
                  agent_args: dict[str, str] | None = None, checkpoint: str | None = None, *,
                  time_limit: float | None = DEFAULT_TIME_LIMIT, load_time_limit: float | None = DEFAULT_LOAD_TIME_LIMIT,
-                 memory_limit: int | None = DEFAULT_MEMORY_LIMIT) -> None:
+                 memory_limit: int | None = DEFAULT_MEMORY_LIMIT, lanes: int = 1) -> None:
+        if lanes < 1:
+            raise ValueError(f"lanes must be >= 1, got {lanes}")
         self.name = Path(path).name
+        self.lanes = lanes
         self._num_actions = _num_actions(action_space)
         self._time_limit = time_limit
         self._next_time_limit = load_time_limit
@@ -294,9 +359,38 @@ class IsolatedAgent(_FailureTracking):
         self._write_fd = parent_write
         self._reader = _FrameReader(parent_read)
         self._finalizer = weakref.finalize(self, _stop_process, self._process, (parent_write, parent_read))
-        spec = (str(path), observation_space, action_space, agent_args, checkpoint)
+        spec = (str(path), observation_space, action_space, agent_args, checkpoint, lanes)
         self._request_ok(pickle.dumps(spec, pickle.HIGHEST_PROTOCOL), "loading", expected=_READY)
         self._next_time_limit = load_time_limit
+        self._first_batch = True
+
+    def batch(self, calls: Sequence[Call]) -> list[int | None]:
+        """Carry out one call per lane in one round trip; actions for steps, None for the other calls.
+
+        Each call has the per-call time limit (enforced in the child); an AgentError's `index` says
+        which call of the batch failed.
+        """
+        per_call = self._next_time_limit if self._first_batch else self._time_limit
+        request = pickle.dumps((_BATCH, *_columns(calls), per_call), pickle.HIGHEST_PROTOCOL)
+        backstop = None if per_call is None else per_call * len(calls) + _CLOSE_GRACE_SECONDS
+        self._next_time_limit = backstop
+        reply = self._request(request, f"a batch of {len(calls)} calls")
+        self._first_batch = False
+        if reply[:1] != _BATCHED:
+            raise self._fail("crash", f"agent {self.name}: the agent process sent a malformed reply {reply[:40]!r}")
+        tokens = reply[1:].split(b",") if len(reply) > 1 else []
+        if len(tokens) != len(calls):
+            raise self._fail("crash", f"agent {self.name}: the agent process answered {len(tokens)} of "
+                                      f"{len(calls)} calls")
+        out: list[int | None] = []
+        for token in tokens:
+            if token == _OK:
+                out.append(None)
+            elif token[:1] == _ACTION and token[1:].isdigit() and int(token[1:]) < self._num_actions:
+                out.append(int(token[1:]))
+            else:
+                raise self._fail("crash", f"agent {self.name}: the agent process sent a malformed reply {token[:40]!r}")
+        return out
 
     def step(self, transition: Transition | None, observation: Any) -> int:
         """Observe the previous step's `transition` (None on an episode's first step), then act."""
@@ -312,9 +406,9 @@ class IsolatedAgent(_FailureTracking):
         """The agent's action for `observation`."""
         return self.step(None, observation)
 
-    def reset_task(self, hidden: dict | None = None) -> None:
+    def reset_task(self, hidden: dict | None = None, seed: int | None = None) -> None:
         """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only)."""
-        self._request_ok(pickle.dumps((_RESET_TASK, hidden)), "reset_task()")
+        self._request_ok(pickle.dumps((_RESET_TASK, hidden, seed)), "reset_task()")
 
     def observe(self, transition: Transition) -> None:
         """Report one step's outcome to the agent."""
@@ -355,8 +449,10 @@ class IsolatedAgent(_FailureTracking):
             raise self._fail("crash", f"agent {self.name}: the agent process died during {call} "
                                       f"({self._exit_description()})")
         if reply[:1] == _ERROR:
-            kind, message = _decode_error(reply)
-            raise self._fail(kind, message)
+            kind, message, index = _decode_error(reply)
+            error = self._fail(kind, message)
+            error.index = index
+            raise error
         self._next_time_limit = self._time_limit
         return reply
 
@@ -416,14 +512,15 @@ def _write_frame(fd: int, payload: bytes) -> None:
         data = data[os.write(fd, data):]
 
 
-def _decode_error(reply: bytes) -> tuple[str, str]:
-    """The (kind, message) of an error reply; a malformed one counts as a crash."""
+def _decode_error(reply: bytes) -> tuple[str, str, int | None]:
+    """The (kind, message, index in the batch) of an error reply; a malformed one counts as a crash."""
     try:
         error = json.loads(reply[1:])
-        kind, message = error["kind"], error["message"]
-    except (ValueError, KeyError, TypeError):
-        return "crash", f"the agent process sent a malformed error reply {reply[:80]!r}"
-    return (kind, str(message)) if kind in ERROR_KINDS else ("crash", str(message))
+        kind, message, index = error["kind"], error["message"], error.get("index")
+    except (ValueError, KeyError, TypeError, AttributeError):
+        return "crash", f"the agent process sent a malformed error reply {reply[:80]!r}", None
+    index = index if isinstance(index, int) and not isinstance(index, bool) else None
+    return (kind if kind in ERROR_KINDS else "crash"), str(message), index
 
 
 def _stop_process(process: subprocess.Popen, fds: tuple[int, ...]) -> None:
@@ -473,41 +570,111 @@ def _child_main() -> None:
     spec = reader.read()
     if spec is None:
         return
-    path, observation_space, action_space, agent_args, checkpoint = pickle.loads(spec)
+    path, observation_space, action_space, agent_args, checkpoint, lanes = pickle.loads(spec)
     sys.argv = sys.argv[:1]  # the pipe numbers are none of the agent's business
+    name = Path(path).name
     try:
-        agent = load_agent(path, observation_space, action_space, agent_args, checkpoint)
+        agents = [load_agent(path, observation_space, action_space, agent_args, checkpoint) for _ in range(lanes)]
     except AgentLoadError as exc:
         _write_frame(write_fd, _error_reply(AgentError("load", str(exc))))
         return
-    calls = _AgentCalls(agent, _num_actions(action_space), Path(path).name, memory_limit or None)
+    calls = [_AgentCalls(agent, _num_actions(action_space), name, memory_limit or None) for agent in agents]
+    signal.signal(signal.SIGALRM, _raise_call_timeout)
     _write_frame(write_fd, _READY)
     while (request := reader.read()) is not None:
         try:
-            reply = _answer(calls, pickle.loads(request))
+            reply = _answer(calls, pickle.loads(request), name)
         except AgentError as err:
             reply = _error_reply(err)
         _write_frame(write_fd, reply)
 
 
-def _answer(calls: _AgentCalls, request: tuple) -> bytes:
-    """Carry out one request on the agent; the reply's bytes."""
+def _answer(calls: list[_AgentCalls], request: tuple, name: str) -> bytes:
+    """Carry out one request on the agent (lane 0) or a batch of calls on the lanes; the reply's bytes."""
     operation = request[0]
-    if operation == _STEP:
-        return _ACTION + b"%d" % calls.step(request[1], request[2])
-    if operation == _RESET_TASK:
-        calls.reset_task(request[1])
-    elif operation == _OBSERVE:
-        calls.observe(request[1])
-    elif operation == _END_EPISODE:
-        calls.end_episode(request[1])
-    else:
-        raise AgentError("crash", f"unknown request {operation!r}")
-    return _OK
+    if operation != _BATCH:
+        return calls[0].answer(operation, request[1:])
+    _, batch, observations, previous, time_limit = request
+    tokens = []
+    for index, (lane, call, args) in enumerate(batch):
+        if call == _STEP_ROW:
+            call, args = _STEP, _step_arguments(args, observations, previous)
+        try:
+            if time_limit is not None:
+                signal.setitimer(signal.ITIMER_REAL, time_limit)
+            tokens.append(calls[lane].answer(call, args))
+        except _CallTimeout:
+            raise AgentError("timeout", f"agent {name}: {CALL_NAMES.get(call, 'a call')} did not finish within the "
+                                        f"time limit of {time_limit:g} s; the agent process was killed", index) from None
+        except AgentError as err:
+            raise AgentError(err.kind, str(err), index) from None
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+    return _BATCHED + b",".join(tokens)
+
+
+def _columns(calls: Sequence[Call]) -> tuple[list[Call], np.ndarray | None, np.ndarray | None]:
+    """A batch with its steps' observations stacked into two arrays (pickling one array beats pickling many).
+
+    A step whose observation is an array like the others, and whose transition's next_obs is that
+    same observation, becomes (lane, _STEP_ROW, (row, previous row or -1, action, reward,
+    terminated, truncated)); anything else (sapien dicts, odd agents' inputs) travels as it is.
+    """
+    out: list[Call] = []
+    observations: list[np.ndarray] = []
+    previous: list[np.ndarray] = []
+    for lane, operation, args in calls:
+        if operation == _STEP and _stackable(args, observations):
+            transition, observation = args
+            observations.append(observation)
+            if transition is None:
+                out.append((lane, _STEP_ROW, (len(observations) - 1, -1, 0, 0.0, False, False)))
+            else:
+                previous.append(transition.obs)
+                out.append((lane, _STEP_ROW, (len(observations) - 1, len(previous) - 1, transition.action,
+                                              transition.reward, transition.terminated, transition.truncated)))
+        else:
+            out.append((lane, operation, args))
+    return out, (np.stack(observations) if observations else None), (np.stack(previous) if previous else None)
+
+
+def _stackable(args: tuple, stacked: list[np.ndarray]) -> bool:
+    """True if a step's observation (and its transition's) can join the stacked arrays."""
+    transition, observation = args
+    if not isinstance(observation, np.ndarray):
+        return False
+    like = stacked[0] if stacked else observation
+    if observation.shape != like.shape or observation.dtype != like.dtype:
+        return False
+    return transition is None or (transition.next_obs is observation and isinstance(transition.obs, np.ndarray)
+                                  and transition.obs.shape == like.shape and transition.obs.dtype == like.dtype)
+
+
+def _step_arguments(args: tuple, observations: np.ndarray, previous: np.ndarray | None) -> tuple:
+    """The (transition, observation) of a stacked step, rebuilt in the agent process."""
+    row, previous_row, action, reward, terminated, truncated = args
+    observation = observations[row]
+    if previous_row < 0:
+        return None, observation
+    return Transition(previous[previous_row], action, reward, observation, terminated, truncated), observation
+
+
+def _raise_call_timeout(signum: int, frame: object) -> None:
+    raise _CallTimeout
+
+
+def _accepts_keyword(function: Callable[..., object], name: str) -> bool:
+    """True if `function` can be called with keyword argument `name`."""
+    try:
+        parameters = inspect.signature(function).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == name and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) or p.kind == p.VAR_KEYWORD
+               for p in parameters)
 
 
 def _error_reply(err: AgentError) -> bytes:
-    return _ERROR + json.dumps({"kind": err.kind, "message": str(err)}).encode()
+    return _ERROR + json.dumps({"kind": err.kind, "message": str(err), "index": err.index}).encode()
 
 
 def _limit_address_space(memory_limit: int) -> None:

@@ -1,16 +1,18 @@
 """The results file of an evaluation run (JSON, schema-versioned; SPEC section 6).
 
-Layout (schema 1):
+Layout (schema 2, protocol 2; schema-1 files of protocol 1 still load and are shown as such):
 - `schema_version`, `protocol_version`, `complete` (false while the run is in progress);
 - `agent`: name, file, sha256, privileged, agent_args, checkpoint;
 - `suite`: name, version, sha256; `env`: id, version, mode; `package_version`;
 - `seeds`, `episodes_per_pair`, `isolation` (isolated, time_limit, memory_limit);
-- `units`: one per (pair, seed), sorted: pair, seed, task, env_seeds, returns, normalised_returns,
-  lengths, scores (normalised return / the pair's max-expected baseline);
-- `scores` (when complete): curve s_1..s_K, mean, adaptability, skill (mean + 95% bootstrap CI),
-  units, bootstrap settings; `baselines`: the suite's reference lines on the score scale and skill;
-- `timing` (started, finished, wall_time, per-unit seconds) and `machine`: the only fields that
-  differ between two runs of the same agent with the same seeds.
+- `units`: one per (pair, seed), sorted: pair, seed, task, env_seeds (= the episodes' luck keys),
+  returns, normalised_returns, lengths, scores (raw: normalised return / the pair's max-expected);
+- `scores` (when complete; `protocol.scoring`): curve s_1..s_K, mean, iqm, adaptability, skill
+  (control-variate adjusted, with 95% stratified-bootstrap CIs, null when not estimable),
+  verdicts, comparisons with the reference lines, the raw (unadjusted) estimates, control-variate
+  and bootstrap settings; `baselines`: the suite's reference lines on the score scale and skill;
+- `timing` (started, finished, wall_time, per-unit seconds), `machine` and `execution` (jobs,
+  lanes): the only fields that differ between two runs of the same agent with the same seeds.
 """
 
 from __future__ import annotations
@@ -21,9 +23,10 @@ from typing import Any
 
 from mewa_bench.design.suites import write_json_atomic
 
-SCHEMA_VERSION = 1
-PROTOCOL_VERSION = 1
-VOLATILE_FIELDS = ("timing", "machine")
+SCHEMA_VERSION = 2
+PROTOCOL_VERSION = 2
+SUPPORTED = {1: 1, 2: 2}  # schema version -> its protocol version
+VOLATILE_FIELDS = ("timing", "machine", "execution")
 _REQUIRED = ("schema_version", "protocol_version", "complete", "agent", "suite", "env", "package_version",
              "seeds", "episodes_per_pair", "units")
 _UNIT_FIELDS = ("pair", "seed", "task", "env_seeds", "returns", "normalised_returns", "lengths", "scores")
@@ -70,10 +73,12 @@ def _validate(results: Any, where: str) -> None:
     missing = [k for k in _REQUIRED if k not in results]
     if missing:
         raise ResultsError(f"{where}: missing field(s) {', '.join(missing)}")
-    if results["schema_version"] != SCHEMA_VERSION:
-        raise ResultsError(f"{where}: schema_version {results['schema_version']!r} is not supported (expected {SCHEMA_VERSION})")
-    if results["protocol_version"] != PROTOCOL_VERSION:
-        raise ResultsError(f"{where}: protocol_version {results['protocol_version']!r} is not {PROTOCOL_VERSION}")
+    schema = results["schema_version"]
+    if schema not in SUPPORTED or isinstance(schema, bool):
+        raise ResultsError(f"{where}: schema_version {schema!r} is not supported (expected one of {sorted(SUPPORTED)})")
+    if results["protocol_version"] != SUPPORTED[schema]:
+        raise ResultsError(f"{where}: protocol_version {results['protocol_version']!r} does not match schema_version "
+                           f"{schema} (protocol {SUPPORTED[schema]})")
     for key in ("name", "sha256"):
         if key not in results["suite"]:
             raise ResultsError(f"{where}: suite.{key} is missing")

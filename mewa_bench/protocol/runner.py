@@ -17,23 +17,26 @@ from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Generator, NamedTuple, Sequence
 
 import numpy as np
+
 
 from mewa_bench.design.references import summarise
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.envs.mewa_env import DEFAULT_IMAGE_SIZE, ENV_VERSION, MewaEnv
 from mewa_bench.protocol.agent import Transition, agent_sha256
-from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, AgentError, AgentRunner,
-                                           make_agent_runner)
+from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, END_EPISODE, RESET_TASK, STEP,
+                                           AgentError, AgentRunner, make_agent_runner)
 from mewa_bench.protocol.results import (PROTOCOL_VERSION, SCHEMA_VERSION, ResultsError, read_results, unit_key,
                                          write_results)
-from mewa_bench.protocol.scoring import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, CONFIDENCE, score_run
+from mewa_bench.protocol.scoring import episode_score, score_units
 from mewa_bench.protocol.trajectory import BackgroundSinks, EpisodeRecord, RunInfo, StepRecord, TrajectorySink, UnitRecord
 
 EPISODES_PER_PAIR = 10
-DEFAULT_SEEDS = (0, 1, 2)
+DEFAULT_LANES = 64
+WRITE_INTERVAL = 1.0  # seconds between writes of the results file during a run
+DEFAULT_SEEDS = tuple(range(50))  # protocol 2: set by the power analysis in docs/protocol.md
 
 
 class EvaluationError(RuntimeError):
@@ -65,6 +68,7 @@ class EvalConfig:
     overwrite: bool = False  # replace an existing results file (it is replaced when the first unit is written)
     pairs: tuple[int, ...] | None = None  # a subset of pairs, for quick checks (the run is then partial)
     collect_trajectories: bool = False  # set by `evaluate` when sinks are attached
+    lanes: int = DEFAULT_LANES  # agent objects played side by side per process (one IPC round trip per step for all)
     mode: str = "vector"  # or "sapien": agents observe {"state": float32[18], "image": uint8[H, W, 3]}
     image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE
 
@@ -92,6 +96,12 @@ def hidden_pair(suite: Suite, pair: int) -> dict[str, Any]:
     return {"task": suite.tasks[p.task_index].to_dict(), "worker": list(p.worker.w)}
 
 
+def unit_seed(suite_hash: str, pair: int, seed: int) -> int:
+    """The seed an agent gets with reset_task(seed=...) for one unit (independent of order, lanes and jobs)."""
+    digest = hashlib.sha256(f"{suite_hash}/{pair}/{seed}/agent".encode()).digest()
+    return int.from_bytes(digest[:8], "little") >> 1
+
+
 def step_record(step: int, obs: Any, action: int, reward: float, next_obs: Any, terminated: bool,
                 truncated: bool, info: dict[str, Any]) -> StepRecord:
     """A step for the sinks: state vectors, plus the image of `next_obs` in sapien mode."""
@@ -101,76 +111,131 @@ def step_record(step: int, obs: Any, action: int, reward: float, next_obs: Any, 
     return StepRecord(step, obs, action, reward, next_obs, terminated, truncated, info["progress"], info["events"])
 
 
-def play_unit(runner: AgentRunner, env: MewaEnv, suite: Suite, pair: int, seed: int, episodes: int,
-              privileged: bool, agent_file: str, collect: bool = False) -> tuple[dict[str, Any], UnitRecord | None]:
-    """One (pair, seed) unit: reset_task, then `episodes` episodes; the unit's record and, if `collect`, its steps."""
+class AgentCall(NamedTuple):
+    """What a unit asks of its agent next: a call of `isolation` (RESET_TASK, STEP, END_EPISODE), and when."""
+
+    operation: int
+    args: tuple
+    episode: int  # -1: before the first episode
+    step: int  # for END_EPISODE: the episode's last step
+
+
+def describe(call: AgentCall, agent_file: Path, pair: int, seed: int) -> str:
+    """Where a call happened, for error messages (episodes and steps count from 0, as in logs and datasets)."""
+    where = f"agent {agent_file}, pair {pair}, seed {seed}"
+    if call.operation == RESET_TASK:
+        return f"{where}, before episode 0 (reset_task)"
+    if call.operation == END_EPISODE:
+        return f"{where}, episode {call.episode}, end_episode after step {call.step}"
+    return f"{where}, episode {call.episode}, step {call.step}"
+
+
+UnitResult = tuple[dict[str, Any], UnitRecord | None]
+
+
+def unit_calls(env: MewaEnv, suite: Suite, pair: int, seed: int, config: EvalConfig
+               ) -> Generator[AgentCall, int | None, UnitResult]:
+    """One (pair, seed) unit as a sequence of agent calls: reset_task, then `episodes` episodes.
+
+    Send each call's reply (the action for a step, None otherwise); the generator returns the
+    unit's record and, if trajectories are collected, its steps. Episodes and steps count from 0,
+    as in logs and datasets.
+    """
     p = suite.pairs[pair]
     task, worker = suite.tasks[p.task_index], p.worker.w
-    where = f"agent {agent_file}, pair {pair}, seed {seed}"
-    try:
-        runner.reset_task(hidden_pair(suite, pair) if privileged else None)
-    except AgentError as e:
-        raise EvaluationError(f"{where}, before episode 1 (reset_task): {e}", e.kind) from None
-    best = p.max_expected
+    collect = config.collect_trajectories
+    hidden = hidden_pair(suite, pair) if config.privileged else None
+    yield AgentCall(RESET_TASK, (hidden, unit_seed(suite.sha256, pair, seed)), -1, -1)
     seeds, returns, normalised, lengths, played = [], [], [], [], []
-    for k in range(episodes):
+    for k in range(config.episodes):
         s = env_seed(suite.sha256, pair, seed, k)
-        obs, _ = env.reset(seed=s, options={"task": task, "worker": worker})
+        obs, _ = env.reset(seed=s, options={"task": task, "worker": worker, "luck_key": s})  # luck key = env seed
         first_image = obs["image"] if collect and isinstance(obs, dict) else None
         transition, step, done, steps = None, 0, False, []
         while not done:
-            try:
-                action = runner.step(transition, obs)
-            except AgentError as e:
-                raise EvaluationError(f"{where}, episode {k + 1}, step {step}: {e}", e.kind) from None
+            action = yield AgentCall(STEP, (transition, obs), k, step)
             next_obs, reward, terminated, truncated, info = env.step(action)
             transition = Transition(obs, action, float(reward), next_obs, terminated, truncated)
             if collect:
                 steps.append(step_record(step, obs, action, float(reward), next_obs, terminated, truncated, info))
             obs, step, done = next_obs, step + 1, terminated or truncated
-        try:
-            runner.end_episode(transition)
-        except AgentError as e:
-            raise EvaluationError(f"{where}, episode {k + 1}, end_episode after step {step}: {e}", e.kind) from None
+        yield AgentCall(END_EPISODE, (transition,), k, step - 1)
         seeds.append(s)
         returns.append(info["episode_return"])
         normalised.append(info["normalised_return"])
         lengths.append(step)
         if collect:
             played.append(EpisodeRecord(k, s, tuple(steps), info["episode_return"], info["normalised_return"],
-                                        info["normalised_return"] / best, first_image))
+                                        float(episode_score(info["normalised_return"], p.max_expected)), first_image))
     unit = {"pair": pair, "seed": seed, "task": p.task_index, "env_seeds": seeds, "returns": returns,
-            "normalised_returns": normalised, "lengths": lengths, "scores": [v / best for v in normalised]}
+            "normalised_returns": normalised, "lengths": lengths,
+            "scores": [float(v) for v in episode_score(np.array(normalised), p.max_expected)]}
     record = UnitRecord(pair, seed, p.task_index, task.to_dict(), worker, tuple(played)) if collect else None
     return unit, record
 
 
-class _UnitPlayer:
-    """Plays units with one agent runner (created on first use) and one env."""
+OnUnit = Callable[[dict[str, Any], float, UnitRecord | None], None]
+
+
+class _LanePlayer:
+    """Plays units on an agent runner with `config.lanes` lanes (created on first use), one env per lane.
+
+    Units are dealt to lanes round-robin; all lanes advance together, one batched agent call per
+    round, so crossing the process boundary costs one round trip per round, not per step.
+    """
 
     def __init__(self, config: EvalConfig, suite: Suite) -> None:
         self.config, self.suite = config, suite
-        self.env = MewaEnv(task=suite.tasks[0], worker=suite.pairs[0].worker.w, mode=config.mode,
-                           image_size=config.image_size)
+        self.envs: list[MewaEnv] = []
         self.runner: AgentRunner | None = None
 
-    def play(self, pair: int, seed: int) -> tuple[dict[str, Any], float, UnitRecord | None]:
+    def play(self, units: Sequence[tuple[int, int]], on_unit: OnUnit) -> None:
+        """Play (pair, seed) units; `on_unit(unit, seconds, record)` as each one finishes."""
         c = self.config
+        if not units:
+            return
         if self.runner is None:
+            n_lanes = min(c.lanes, len(units))  # a short run needs no more agents than units
+            self.envs = [MewaEnv(task=self.suite.tasks[0], worker=self.suite.pairs[0].worker.w, mode=c.mode,
+                                 image_size=c.image_size) for _ in range(n_lanes)]
+            env = self.envs[0]
             try:
-                self.runner = make_agent_runner(c.agent_path, self.env.observation_space, self.env.action_space,
-                                                c.agent_args, c.checkpoint, isolated=c.isolated,
-                                                time_limit=c.time_limit, memory_limit=c.memory_limit)
+                self.runner = make_agent_runner(c.agent_path, env.observation_space, env.action_space, c.agent_args,
+                                                c.checkpoint, isolated=c.isolated, time_limit=c.time_limit,
+                                                memory_limit=c.memory_limit, lanes=n_lanes)
             except AgentError as e:
                 raise EvaluationError(f"agent {c.agent_path}: {e}", e.kind) from None
-        start = time.perf_counter()
-        try:
-            unit, record = play_unit(self.runner, self.env, self.suite, pair, seed, c.episodes, c.privileged,
-                                     str(c.agent_path), collect=c.collect_trajectories)
-        except EvaluationError:
-            self.close()
-            raise
-        return unit, time.perf_counter() - start, record
+        n_lanes = len(self.envs)
+        queues = [list(units[lane::n_lanes]) for lane in range(n_lanes)]
+        active: dict[int, tuple[Generator, AgentCall, float, int, int]] = {}
+
+        def start(lane: int) -> None:
+            if queues[lane]:
+                pair, seed = queues[lane].pop(0)
+                calls = unit_calls(self.envs[lane], self.suite, pair, seed, c)
+                active[lane] = (calls, next(calls), time.perf_counter(), pair, seed)
+
+        for lane in range(n_lanes):
+            start(lane)
+        while active:
+            lanes = sorted(active)
+            try:
+                replies = self.runner.batch([(lane, active[lane][1].operation, active[lane][1].args) for lane in lanes])
+            except AgentError as e:
+                self.close()
+                where = f"agent {c.agent_path}"
+                if e.index is not None and e.index < len(lanes):
+                    _, failed, _, pair, seed = active[lanes[e.index]]
+                    where = describe(failed, c.agent_path, pair, seed)
+                raise EvaluationError(f"{where}: {e}", e.kind) from None
+            for lane, reply in zip(lanes, replies):
+                calls, _, started, pair, seed = active[lane]
+                try:
+                    active[lane] = (calls, calls.send(reply), started, pair, seed)
+                except StopIteration as done:
+                    del active[lane]
+                    on_unit(*done.value[:1], time.perf_counter() - started, done.value[1])
+                    start(lane)
 
     def close(self) -> None:
         if self.runner is not None:
@@ -178,15 +243,17 @@ class _UnitPlayer:
             self.runner = None
 
 
-_WORKER_PLAYER: _UnitPlayer | None = None
+_WORKER_PLAYER: _LanePlayer | None = None
 
 
-def _worker_play(config: EvalConfig, pair: int, seed: int) -> tuple[dict[str, Any], float, UnitRecord | None]:
-    """Entry point of a --jobs worker process: reuse one player per process."""
+def _worker_play(config: EvalConfig, units: list[tuple[int, int]]) -> list[tuple[dict[str, Any], float, UnitRecord | None]]:
+    """Entry point of a --jobs worker process: play a batch of units, reusing one player per process."""
     global _WORKER_PLAYER
     if _WORKER_PLAYER is None:
-        _WORKER_PLAYER = _UnitPlayer(config, load_suite(config.suite))
-    return _WORKER_PLAYER.play(pair, seed)
+        _WORKER_PLAYER = _LanePlayer(config, load_suite(config.suite))
+    finished: list[tuple[dict[str, Any], float, UnitRecord | None]] = []
+    _WORKER_PLAYER.play(units, lambda unit, seconds, record: finished.append((unit, seconds, record)))
+    return finished
 
 
 def machine_info() -> dict[str, Any]:
@@ -211,6 +278,7 @@ def new_results(config: EvalConfig, suite: Suite) -> dict[str, Any]:
         "package_version": __version__, "seeds": list(config.seeds), "episodes_per_pair": config.episodes,
         "pairs": list(config.pairs) if config.pairs is not None else None,
         "isolation": {"isolated": config.isolated, "time_limit": config.time_limit, "memory_limit": config.memory_limit},
+        "execution": {"jobs": config.jobs, "lanes": config.lanes},
         "units": [],
         "timing": {"started": datetime.now(timezone.utc).isoformat(timespec="seconds"), "units": {}},
         "machine": machine_info(),
@@ -238,8 +306,6 @@ def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
     A partial run (--pairs) is compared with the references over its own pairs, never the whole suite's.
     """
     units = results["units"] = sorted(results["units"], key=unit_key)
-    normalised = np.array([u["normalised_returns"] for u in units])
-    best = np.array([suite.pairs[u["pair"]].max_expected for u in units])
     partial = results.get("pairs") is not None
     if partial:
         played = [suite.pairs[i].data for i in results["pairs"]]
@@ -247,9 +313,8 @@ def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
     else:
         baselines = {"score": suite.summary["score"], "skill": suite.summary["skill"],
                      "non_adaptive_gap": suite.summary["non_adaptive_gap"]}
-    scores = score_run(normalised, best, baselines["score"]["random_task_specific"])
-    results["scores"] = {**scores.to_dict(), "bootstrap": {"seed": BOOTSTRAP_SEED, "samples": BOOTSTRAP_SAMPLES,
-                                                           "confidence": CONFIDENCE, "unit": "(pair, seed)"}}
+    scores = score_units(suite, units, baselines["score"]["random_task_specific"])
+    results["scores"] = scores.to_dict()
     results["baselines"] = baselines
     results["complete"] = not partial
     return results
@@ -283,6 +348,8 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
             raise ValueError(f"{what} {list(values)} repeat a value: every (pair, seed) unit is played once")
     if not config.seeds:
         raise ValueError("at least one seed is needed")
+    if config.lanes < 1:
+        raise ValueError(f"lanes must be >= 1, got {config.lanes}")
     suite = load_suite(config.suite)
     out = config.out or default_results_path(config, suite)
     results = new_results(config, suite)
@@ -301,34 +368,44 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
     progress(total - len(todo), total)
     start = time.perf_counter()
 
+    last_write = [time.perf_counter(), 0]  # when the file was last written, and with how many units
+
+    def save() -> None:
+        write_results(out, results)
+        last_write[:] = [time.perf_counter(), len(results["units"])]
+
     def record(unit: dict[str, Any], seconds: float, trajectory: UnitRecord | None) -> None:
         results["units"].append(unit)
         results["timing"]["units"][f"{unit['pair']}/{unit['seed']}"] = round(seconds, 4)
-        write_results(out, results)  # after every unit: nothing finished is ever lost
+        if time.perf_counter() - last_write[0] >= WRITE_INTERVAL:
+            save()  # at most every WRITE_INTERVAL seconds while running, and whatever happens at the end
         writers.add_unit(trajectory)
         progress(len(results["units"]), total)
 
     writers = BackgroundSinks(sinks)
-    writers.start(run_info(config, suite, results))
     try:
-        if config.jobs <= 1 or len(todo) <= 1:
-            player = _UnitPlayer(config, suite)
+        writers.start(run_info(config, suite, results))
+        if config.jobs <= 1 or len(todo) <= config.lanes:
+            player = _LanePlayer(config, suite)
             try:
-                for pair, seed in todo:
-                    record(*player.play(pair, seed))
+                player.play(todo, record)
             finally:
                 player.close()
         else:
+            batches = [todo[i:i + config.lanes] for i in range(0, len(todo), config.lanes)]
             with ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn")) as pool:
-                futures = [pool.submit(_worker_play, config, pair, seed) for pair, seed in todo]
+                futures = [pool.submit(_worker_play, config, batch) for batch in batches]
                 try:
                     for future in as_completed(futures):
-                        record(*future.result())
+                        for finished in future.result():
+                            record(*finished)
                 except BaseException:
                     for f in futures:
                         f.cancel()
                     raise
     finally:
+        if len(results["units"]) != last_write[1]:
+            save()  # nothing finished is ever lost, also when the run fails or is interrupted
         writers.close()
     finish(results, suite)
     timing = results["timing"]

@@ -1,32 +1,52 @@
-"""Scores of an evaluation run (SPEC section 6), from per-(pair, seed, episode) normalised returns.
+"""Scores of an evaluation run (SPEC section 6, protocol version 2): the one home of every formula.
 
-Score of episode k of a pair: s_k = normalised return / the pair's max-expected baseline
-(1.0 = as good as the best t-optimal policy that knows the worker). A unit is one (pair, seed):
-the curve s_1..s_10 is averaged over units with a percentile bootstrap CI over units.
+Score of episode k of a unit (one pair, one seed): s_k = normalised return / the pair's
+max-expected baseline (1.0 = as good as the best t-optimal policy that knows the worker).
+
+Protocol 2 removes most of the luck from these numbers without changing their expectation:
+
+1. *Coupled luck.* Every episode is played with a luck key (its env seed), and the reference
+   policies (the t-optimal family and the two random baselines) are replayed on the same keys
+   (`design.replay`), so they meet the same worker mistakes wherever their paths allow.
+2. *Control variates.* The adjusted score of an episode is s - x_r + E[x_r], where x_r is the
+   realised score of reference r on the same key and E[x_r] its exact expectation from the suite.
+   For every (pair, episode k) and every unit, r is the reference (or none) whose difference with
+   the agent had the smallest variance on the *other* seeds of the same pair (cross-fitting):
+   the choice never looks at the unit it adjusts, so E[adjusted] = E[s] exactly.
+3. *Statistics for a frozen suite.* The pairs are fixed, so confidence intervals come from a
+   bootstrap that resamples seeds within each pair (stratified), with its seed and size recorded.
+   Reported beside the mean: the interquartile mean (IQM) of per-unit scores, paired comparisons
+   with the reference lines (difference of means, probability of improvement on the same seeds)
+   and two verdicts: *adapts* (adaptability CI above 0) and *beats the best fixed policy*.
+A CI needs at least two seeds in every pair; with fewer it is reported as unknown (null), never as
+a zero-width interval.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Sequence
 
 import numpy as np
+
+from mewa_bench.design.policies import RANDOM, RANDOM_TASK_SPECIFIC, policy_names
+from mewa_bench.design.replay import replay_returns
+from mewa_bench.design.suites import Suite
+from mewa_bench.game.normalise import normalised_return
 
 BOOTSTRAP_SEED = 20231105
 BOOTSTRAP_SAMPLES = 2000
 CONFIDENCE = 0.95
+CV_MIN_OTHER_SEEDS = 2  # other seeds of a pair needed to choose a control variate for a unit
+CV_DECIMALS = 12  # variances are compared after rounding, so ties do not depend on float noise
+EQUAL_TOLERANCE = 1e-9  # two realised scores closer than this count as a tie (probability 1/2)
+COMPARED = ("best_fixed", "max_expected", "random_task_specific", "random")  # realised on the same keys
+EXACT_ONLY = ("known_worker_optimum",)  # compared by exact expectation only (no policy to replay)
 
 
-@dataclass(frozen=True)
-class Estimate:
-    """A mean with its bootstrap confidence interval."""
-
-    mean: float
-    low: float
-    high: float
-
-    def to_dict(self) -> dict[str, float]:
-        """JSON-ready form."""
-        return {"mean": self.mean, "low": self.low, "high": self.high}
+def episode_score(normalised: np.ndarray | float, max_expected: np.ndarray | float) -> np.ndarray | float:
+    """s = normalised return / the pair's max-expected baseline."""
+    return np.divide(normalised, max_expected)
 
 
 def episode_scores(normalised: np.ndarray, max_expected: np.ndarray) -> np.ndarray:
@@ -38,38 +58,7 @@ def episode_scores(normalised: np.ndarray, max_expected: np.ndarray) -> np.ndarr
                          f"{normalised.shape} and {max_expected.shape}")
     if (max_expected <= 0).any():
         raise ValueError("max-expected baselines must be positive")
-    return normalised / max_expected[:, None]
-
-
-def bootstrap_means(values: np.ndarray, seed: int = BOOTSTRAP_SEED, samples: int = BOOTSTRAP_SAMPLES) -> np.ndarray:
-    """Means of `samples` bootstrap resamples of the rows of `values` ([units, ...] -> [samples, ...])."""
-    values = np.asarray(values, dtype=np.float64)
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, len(values), size=(samples, len(values)))
-    return values[idx].mean(axis=1)
-
-
-def estimate(values: np.ndarray, boot: np.ndarray) -> Estimate:
-    """Mean of `values` over units with the percentile interval of its bootstrap means."""
-    alpha = (1.0 - CONFIDENCE) / 2.0
-    low, high = np.quantile(boot, [alpha, 1.0 - alpha])
-    return Estimate(float(np.mean(values)), float(low), float(high))
-
-
-@dataclass(frozen=True)
-class Scores:
-    """Everything reported about a run."""
-
-    curve: tuple[Estimate, ...]  # s_1..s_K
-    mean: Estimate  # mean over the K episodes
-    adaptability: Estimate  # mean(s_K - s_1)
-    skill: Estimate  # (S - S_rts) / (1 - S_rts)
-    units: int
-
-    def to_dict(self) -> dict:
-        """JSON-ready form."""
-        return {"curve": [e.to_dict() for e in self.curve], "mean": self.mean.to_dict(),
-                "adaptability": self.adaptability.to_dict(), "skill": self.skill.to_dict(), "units": self.units}
+    return episode_score(normalised, max_expected[:, None])
 
 
 def skill_of(score: np.ndarray | float, rts_score: float) -> np.ndarray | float:
@@ -77,16 +66,284 @@ def skill_of(score: np.ndarray | float, rts_score: float) -> np.ndarray | float:
     return (score - rts_score) / (1.0 - rts_score)
 
 
-def score_run(normalised: np.ndarray, max_expected: np.ndarray, rts_score: float,
-              seed: int = BOOTSTRAP_SEED, samples: int = BOOTSTRAP_SAMPLES) -> Scores:
-    """Scores of a run: `normalised` [units, episodes], `max_expected` [units], the suite's rts mean score."""
-    s = episode_scores(normalised, max_expected)
-    per_unit = np.column_stack([s, s.mean(axis=1), s[:, -1] - s[:, 0]])  # curve, mean, adaptability
-    boot = bootstrap_means(per_unit, seed, samples)
-    k = s.shape[1]
-    curve = tuple(estimate(per_unit[:, i], boot[:, i]) for i in range(k))
-    mean = estimate(per_unit[:, k], boot[:, k])
-    adapt = estimate(per_unit[:, k + 1], boot[:, k + 1])
-    skill = Estimate(float(skill_of(mean.mean, rts_score)), float(skill_of(mean.low, rts_score)),
-                     float(skill_of(mean.high, rts_score)))
-    return Scores(curve, mean, adapt, skill, len(s))
+@dataclass(frozen=True)
+class Estimate:
+    """A point estimate with its bootstrap confidence interval (None when it cannot be estimated)."""
+
+    mean: float
+    low: float | None
+    high: float | None
+
+    def to_dict(self) -> dict[str, float | None]:
+        """JSON-ready form."""
+        return {"mean": self.mean, "low": self.low, "high": self.high}
+
+    @property
+    def above_zero(self) -> bool:
+        """True when the whole interval lies above 0."""
+        return self.low is not None and self.low > 0.0
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """Agent minus one reference line, paired on the same units."""
+
+    difference: Estimate  # mean adjusted score - the reference's exact expected score
+    probability_of_improvement: Estimate | None  # P(agent episode > reference episode, same luck key)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        poi = self.probability_of_improvement
+        return {"difference": self.difference.to_dict(),
+                "probability_of_improvement": poi.to_dict() if poi is not None else None}
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Everything reported about a run."""
+
+    curve: tuple[Estimate, ...]  # s_1..s_K, control-variate adjusted
+    mean: Estimate  # mean over the K episodes
+    iqm: Estimate  # interquartile mean of the per-unit mean scores
+    adaptability: Estimate  # mean(s_K - s_1)
+    skill: Estimate  # (S - S_rts) / (1 - S_rts)
+    raw: dict[str, Any]  # the same without control variates: curve means, mean, adaptability
+    comparisons: dict[str, Comparison]
+    units: int
+    control_variates: dict[str, Any]  # which references were used, how often
+
+    @property
+    def verdicts(self) -> dict[str, bool]:
+        """"adapts": adaptability CI above 0; "beats_best_fixed": paired difference CI above 0."""
+        return {"adapts": self.adaptability.above_zero,
+                "beats_best_fixed": self.comparisons["best_fixed"].difference.above_zero}
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        return {"curve": [e.to_dict() for e in self.curve], "mean": self.mean.to_dict(), "iqm": self.iqm.to_dict(),
+                "adaptability": self.adaptability.to_dict(), "skill": self.skill.to_dict(),
+                "verdicts": self.verdicts, "comparisons": {k: c.to_dict() for k, c in self.comparisons.items()},
+                "raw": self.raw, "control_variates": self.control_variates, "units": self.units,
+                "bootstrap": {"seed": BOOTSTRAP_SEED, "samples": BOOTSTRAP_SAMPLES, "confidence": CONFIDENCE,
+                              "unit": "(pair, seed)", "strata": "pair"}}
+
+
+# -- reference replays -----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class References:
+    """Realised and exact scores of the reference policies for every unit's episodes.
+
+    Column r of `realised` [U, K, R] / `expected` [U, R] is the r-th of `names[pair's task]`
+    (t-optimal family, then random task-specific and random); columns past a task's own
+    references are NaN (wide suites mix N = 3 and N = 4).
+    """
+
+    realised: np.ndarray
+    expected: np.ndarray
+    names: dict[int, tuple[str, ...]]
+
+
+def reference_scores(suite: Suite, units: Sequence[dict[str, Any]]) -> References:
+    """Replay every reference policy on the units' luck keys (= env seeds), grouped by pair."""
+    k = len(units[0]["env_seeds"]) if units else 0
+    width = max(len(policy_names(t.N)) for t in suite.tasks)
+    realised = np.full((len(units), k, width), np.nan)
+    expected = np.full((len(units), width), np.nan)
+    names = {i: policy_names(t.N) for i, t in enumerate(suite.tasks)}
+    by_pair: dict[int, list[int]] = {}
+    for u, unit in enumerate(units):
+        by_pair.setdefault(int(unit["pair"]), []).append(u)
+    for pair, rows in by_pair.items():
+        p = suite.pairs[pair]
+        task, refs = suite.tasks[p.task_index], names[p.task_index]
+        keys = np.array([units[u]["env_seeds"] for u in rows], dtype=np.uint64).reshape(-1)
+        returns = replay_returns(task, refs, p.worker.w, keys)
+        scores = episode_score(normalised_return(task, returns), p.max_expected)
+        realised[rows, :, : len(refs)] = scores.reshape(len(rows), k, len(refs))
+        exact = [*p.data["toptimal"], p.data["baselines"][RANDOM_TASK_SPECIFIC.replace("-", "_")],
+                 p.data["baselines"][RANDOM]]
+        expected[rows, : len(refs)] = episode_score(np.array(exact), p.max_expected)
+    return References(realised, expected, names)
+
+
+# -- control variates ------------------------------------------------------------------------------
+
+def control_variates(y: np.ndarray, realised: np.ndarray, expected: np.ndarray,
+                     strata: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Adjusted scores [U, K] and the reference used per unit and episode (-1: none), cross-fitted.
+
+    For unit u of pair p and episode k, the candidates are y - realised[..., r] + expected[r] for
+    every reference r (and with r scaled by its least-squares slope), and y itself (no adjustment).
+    The one applied to u has the smallest variance over the *other* units of pair p at episode k;
+    ties go to the smallest variance over all their episodes, then to the first candidate (plain
+    references in canonical order, then scaled ones, no adjustment last). Pairs with fewer than
+    CV_MIN_OTHER_SEEDS + 1 units are left unadjusted.
+    """
+    n_units, n_episodes = y.shape
+    n_refs = realised.shape[2]
+    centred = realised - expected[:, None, :]
+    adjusted = y.copy()
+    chosen = np.full((n_units, n_episodes), -1, dtype=np.int64)
+    for stratum in np.unique(strata):
+        rows = np.flatnonzero(strata == stratum)
+        n = len(rows)
+        if n - 1 < CV_MIN_OTHER_SEEDS:
+            continue
+        beta = _leave_one_out_slope(y[rows], centred[rows])  # [n, R]
+        c = np.concatenate([y[rows, :, None] - centred[rows],
+                            y[rows, :, None] - beta[:, None, :] * centred[rows], y[rows, :, None]], axis=2)
+        none = c.shape[2] - 1
+        per_episode = _leave_one_out_variance(c)  # [n, K, C]
+        pooled = np.broadcast_to(_leave_one_out_variance(c, pooled=True)[:, None, :], c.shape)
+        pick = _lexicographic_argmin((per_episode, pooled))
+        adjusted[rows] = np.take_along_axis(c, pick[:, :, None], axis=2)[:, :, 0]
+        chosen[rows] = np.where(pick == none, -1, pick % n_refs)
+    return adjusted, chosen
+
+
+def _lexicographic_argmin(keys: tuple[np.ndarray, ...]) -> np.ndarray:
+    """Index along the last axis minimising keys[0], ties broken by keys[1], ...; then the first index."""
+    candidates = np.ones(keys[0].shape, dtype=bool)
+    for key in keys:
+        masked = np.where(candidates, key, np.inf)
+        candidates &= masked == masked.min(axis=-1, keepdims=True)
+    return np.argmax(candidates, axis=-1)
+
+
+def _leave_one_out_slope(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Least-squares slope of y [n, K] on each x [n, K, R] over the other units' episodes, [n, R] (0 if x is constant)."""
+    count = (len(y) - 1) * y.shape[1]
+    sy, sx = y.sum(axis=(0, 1)) - y.sum(axis=1), x.sum(axis=(0, 1))[None, :] - x.sum(axis=1)
+    sxy = (y[:, :, None] * x).sum(axis=(0, 1))[None, :] - (y[:, :, None] * x).sum(axis=1)
+    sxx = (x * x).sum(axis=(0, 1))[None, :] - (x * x).sum(axis=1)
+    cov = sxy / count - (sy[:, None] / count) * (sx / count)
+    var = sxx / count - (sx / count) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = np.where(var > 1e-12, cov / var, 0.0)
+    return np.round(np.nan_to_num(slope, nan=0.0), CV_DECIMALS)
+
+
+def _leave_one_out_variance(c: np.ndarray, pooled: bool = False) -> np.ndarray:
+    """Variance over the other units (axis 0) of each candidate, rounded; NaN candidates get +inf.
+
+    c is [n, K, C]: per episode ([n, K, C] result), or over all the other units' episodes at once
+    (`pooled`, [n, C] result).
+    """
+    n = len(c)
+    if pooled:
+        total, squares = c.sum(axis=(0, 1)), (c * c).sum(axis=(0, 1))
+        mine, mine_sq = c.sum(axis=1), (c * c).sum(axis=1)
+        count = (n - 1) * c.shape[1]
+    else:
+        total, squares, mine, mine_sq, count = c.sum(axis=0), (c * c).sum(axis=0), c, c * c, n - 1
+    mean = (total - mine) / count
+    var = (squares - mine_sq) / count - mean**2
+    return np.where(np.isnan(var), np.inf, np.round(np.maximum(var, 0.0), CV_DECIMALS))
+
+
+# -- stratified bootstrap --------------------------------------------------------------------------
+
+def stratified_resamples(strata: np.ndarray, samples: int = BOOTSTRAP_SAMPLES,
+                         seed: int = BOOTSTRAP_SEED) -> np.ndarray:
+    """Unit indices [samples, U]: each pair's units resampled with replacement among themselves."""
+    rng = np.random.default_rng(seed)
+    idx = np.empty((samples, len(strata)), dtype=np.int64)
+    for stratum in np.unique(strata):
+        rows = np.flatnonzero(strata == stratum)
+        idx[:, rows] = rows[rng.integers(0, len(rows), size=(samples, len(rows)))]
+    return idx
+
+
+def interquartile_mean(values: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Mean of the middle 50% of `values` along `axis` (the 25% at each end trimmed, fractional ends weighted)."""
+    v = np.sort(np.moveaxis(np.asarray(values, dtype=np.float64), axis, -1), axis=-1)
+    n = v.shape[-1]
+    lo, hi = n / 4.0, 3.0 * n / 4.0
+    i = np.arange(n)
+    weight = np.clip(np.minimum(i + 1, hi) - np.maximum(i, lo), 0.0, 1.0)
+    return (v * weight).sum(axis=-1) / weight.sum()
+
+
+def _interval(point: float, boot: np.ndarray, valid: bool) -> Estimate:
+    if not valid:
+        return Estimate(float(point), None, None)
+    alpha = (1.0 - CONFIDENCE) / 2.0
+    low, high = np.quantile(boot, [alpha, 1.0 - alpha])
+    return Estimate(float(point), float(low), float(high))
+
+
+# -- the run's scores ------------------------------------------------------------------------------
+
+def score_units(suite: Suite, units: Sequence[dict[str, Any]], rts_score: float,
+                samples: int = BOOTSTRAP_SAMPLES, seed: int = BOOTSTRAP_SEED) -> Scores:
+    """Scores of a run from its units (pair, env_seeds, normalised_returns): the protocol-2 estimators."""
+    if not units:
+        raise ValueError("no units to score")
+    pairs = np.array([int(u["pair"]) for u in units])
+    best = np.array([suite.pairs[p].max_expected for p in pairs])
+    y = episode_scores(np.array([u["normalised_returns"] for u in units], dtype=np.float64), best)
+    refs = reference_scores(suite, units)
+    adjusted, chosen = control_variates(y, refs.realised, refs.expected, pairs)
+    n_units, k = y.shape
+
+    columns: dict[str, np.ndarray] = {}
+    for i in range(k):
+        columns[f"s{i}"] = adjusted[:, i]
+    columns["mean"] = adjusted.mean(axis=1)
+    columns["adaptability"] = adjusted[:, -1] - adjusted[:, 0]
+    columns["raw_mean"] = y.mean(axis=1)
+    columns["raw_adaptability"] = y[:, -1] - y[:, 0]
+    exact_line, realised_line = _reference_columns(suite, pairs, refs)
+    for name, exact in exact_line.items():
+        columns[f"diff_{name}"] = columns["mean"] - exact
+        if name in realised_line:
+            x = realised_line[name]
+            columns[f"poi_{name}"] = ((y > x + EQUAL_TOLERANCE) + 0.5 * (np.abs(y - x) <= EQUAL_TOLERANCE)).mean(axis=1)
+    names = list(columns)
+    values = np.column_stack([columns[n] for n in names])
+    idx = stratified_resamples(pairs, samples, seed)
+    weights = np.zeros((samples, n_units))
+    np.add.at(weights, (np.arange(samples)[:, None], idx), 1.0)
+    boot = weights @ values / n_units
+    valid = bool(np.min(np.bincount(pairs)[np.unique(pairs)]) >= 2)
+    est = {n: _interval(float(values[:, j].mean()), boot[:, j], valid) for j, n in enumerate(names)}
+    iqm = _interval(float(interquartile_mean(columns["mean"])), interquartile_mean(columns["mean"][idx]), valid)
+
+    skill = Estimate(float(skill_of(est["mean"].mean, rts_score)),
+                     *(None if v is None else float(skill_of(v, rts_score)) for v in (est["mean"].low, est["mean"].high)))
+    comparisons = {name: Comparison(est[f"diff_{name}"], est.get(f"poi_{name}")) for name in exact_line}
+    used = {"none": int(np.sum(chosen < 0)), "reference": int(np.sum(chosen >= 0))}
+    return Scores(
+        curve=tuple(est[f"s{i}"] for i in range(k)), mean=est["mean"], iqm=iqm, adaptability=est["adaptability"],
+        skill=skill,
+        raw={"curve": [float(v) for v in y.mean(axis=0)], "mean": est["raw_mean"].to_dict(),
+             "adaptability": est["raw_adaptability"].to_dict()},
+        comparisons=comparisons, units=n_units,
+        control_variates={"references": "t-optimal family, random task-specific, random (replayed on the same luck keys)",
+                          "selection": "per (pair, episode): the least-variance candidate on the pair's other seeds",
+                          "min_other_seeds": CV_MIN_OTHER_SEEDS, "episodes_adjusted": used["reference"],
+                          "episodes_unadjusted": used["none"]})
+
+
+def _reference_columns(suite: Suite, pairs: np.ndarray,
+                       refs: References) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Per unit: each reference line's exact expected score, and its realised scores [U, K] where replayed."""
+    exact: dict[str, np.ndarray] = {}
+    realised: dict[str, np.ndarray] = {}
+    column = {name: np.empty(len(pairs), dtype=np.int64) for name in COMPARED}
+    for u, pair in enumerate(pairs):
+        p = suite.pairs[pair]
+        names = refs.names[p.task_index]
+        toptimal = p.data["toptimal"]
+        column["best_fixed"][u] = names.index(suite.content["tasks"][p.task_index]["curation"]["best_fixed_policy"])
+        column["max_expected"][u] = int(np.argmax(toptimal))
+        column["random_task_specific"][u] = names.index(RANDOM_TASK_SPECIFIC)
+        column["random"][u] = names.index(RANDOM)
+    rows = np.arange(len(pairs))
+    for name in COMPARED:
+        exact[name] = refs.expected[rows, column[name]]
+        realised[name] = refs.realised[rows, :, column[name]]
+    for name in EXACT_ONLY:
+        exact[name] = np.array([episode_score(suite.pairs[p].data[name], suite.pairs[p].max_expected) for p in pairs])
+    return exact, realised

@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from mewa_bench.design.curate import ratios_to_best
-from mewa_bench.design.suites import SHIPPED_SUITES, Suite, load_suite, write_atomic
+from mewa_bench.design.generate import GAP_TARGETS
+from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite, write_atomic
+from mewa_bench.game.distributions import worker_families
 from mewa_bench.game.palette import COLOR_NAMES
 from mewa_bench.reports.figures import save_png
 
@@ -67,18 +69,25 @@ def suite_section(suite: Suite, figure_name: str) -> str:
         lines += ["", "Sampled tasks rejected as not adaptive (one policy within 1% of the best on every curated worker): "
                   + "; ".join(f"{r['task']['name']} (worst ratio of the best single policy {r['best_single_policy_worst_ratio']:.4f})"
                               for r in rejected) + "."]
+    v2 = "worker_families" in suite.content["generator"]
+    if v2:
+        lines += families_section(suite)
+    family_head, family_rule = (" family |", "---|") if v2 else ("", "")
     lines += ["", "### Curated workers and baselines (exact expected normalised returns)", "",
-              "| pair | task | worker | phase | random | random task-specific | best fixed | max expected | known-worker optimum | best policy |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              f"| pair | task | worker |{family_head} phase | random | random task-specific | best fixed | max expected | known-worker optimum | best policy |",
+              f"|---|---|---|{family_rule}---|---|---|---|---|---|---|"]
     for p in suite.pairs:
         d = p.data
-        lines.append(f"| {p.index} | {suite.tasks[p.task_index].name} | {_fmt(p.worker.w, 2)} | {d['phase']} "
+        family = f" {d['family']} |" if v2 else ""
+        lines.append(f"| {p.index} | {suite.tasks[p.task_index].name} | {_fmt(p.worker.w, 2)} |{family} {d['phase']} "
                      f"| {d['baselines']['random']:.4f} | {d['baselines']['random_task_specific']:.4f} | {d['best_fixed']:.4f} "
                      f"| {d['baselines']['max_expected']:.4f} | {d['known_worker_optimum']:.4f} | `{d['best_policy']}` |")
     lines += ["", "### Suite means", "", "| reference | normalised return | score (ratio to max expected) | skill |", "|---|---|---|---|"]
     for key in ("random", "random_task_specific", "best_fixed", "max_expected", "known_worker_optimum"):
         lines.append(f"| {key.replace('_', ' ')} | {s['normalised'][key]:.4f} | {s['score'][key]:.4f} | {s['skill'][key]:.4f} |")
-    lines += ["", f"Non-adaptive gap (1 - best fixed policy's mean score): **{s['non_adaptive_gap']:.4f}**.", ""]
+    lines += ["", f"Non-adaptive gap (1 - best fixed policy's mean score): **{s['non_adaptive_gap']:.4f}**"
+              + (f" (target >= {GAP_TARGETS[suite.name]:.2f}: {'met' if s['non_adaptive_gap'] >= GAP_TARGETS[suite.name] else 'NOT met'})"
+                 if suite.name in GAP_TARGETS else "") + ".", ""]
     names, stats = policy_ratio_stats(suite, 0)
     lines += [f"### Fig. 2: t-optimal policies on the curated workers of {suite.tasks[0].name}", "",
               f"![policy ratios]({figure_name})", "",
@@ -97,10 +106,71 @@ average worker (paper: 0.013); meta-test workers are curated from the 0.05 grid 
 2-sigma box (phase 1: MAD and Mann-Whitney U; phase 2: where the best non-adaptive policy does
 worst). Scores are ratios to the pair's max-expected baseline (the best t-optimal policy that knows
 the worker); skill = (S - S_rts) / (1 - S_rts).
+
+## Suites v2: two worker families (narrow-v2, wide-v2)
+
+Same rules (`MEWA-v0`), same Eq. 1 rewards and paper average worker; `narrow-v1` and `wide-v1`
+are untouched. Every choice below is a constant in `mewa_bench/design/generate.py` and is recorded
+in the suite files (`generator`, and each task's `worker_distribution`).
+
+- **Two worker families.** The paper's (non-increasing w: more open structures, fewer mistakes;
+  centre = Eq. 1's average worker, default sigma) and the *overloaded* family (non-decreasing w:
+  mistakes grow with the number of open structures, e.g. (0, 1, 1, 1): greedy building is perfect,
+  parallel building always fails). Its centre and widths are the paper family's mirrored,
+  w_x <-> w_{N-1-x} (canonical task: centre (0.1875, 0.2625, 0.3375, 0.4125), sigma (0.08, 0.10,
+  0.12, 0.12)): a worker that is as careless with x + 1 structures open as the average paper worker
+  is with N - x. Eq. 1 cannot place this centre: on every non-decreasing worker the greedy policy
+  (rho1 = 0) is the best t-optimal policy (checked on all 10,605 such grid workers of the canonical
+  task), so there is no balance point between policies to aim at; the mirror keeps the two families
+  symmetric. A constant worker belongs to both families.
+- **Meta-test region.** Grid workers (0.05) of either family outside the 2-sigma box of *every*
+  family (for each family some component has |w_x - avg_x| >= 2 sigma_x).
+- **Meta-train distribution** (issue 16: a PPO agent trained inside the 2-sigma box never sees the
+  extreme curated workers). Per draw: a family with probability 1/2; then, with probability 1/2,
+  the paper's box sampler of that family (SPEC section 3 bands inside its 2-sigma box, kept in the
+  family's order, never in the test region), else the *cover* sampler (uniform over the family's
+  monotone workers in [0, 1]^N: sorted uniforms), which reaches the structure of the test region,
+  extremes included. Every meta-train worker lies at L-inf distance >= 0.01 from every point of the
+  0.05 grid, so it is never a meta-test worker (nor within 0.01 of one). `gym.make("mewa/MEWA-v0",
+  tasks=load_suite("narrow-v2").tasks)` samples from it (`game.distributions.sample_meta_train_workers`);
+  `gym.make("mewa/MEWA-v0")` stays narrow-v1's.
+- **Curation.** Candidates: the test region's grid workers of both families whose best t-optimal
+  return is >= 0.5 (v1: 0.1; a pair's score is return / max expected, and a low max expected makes
+  single-episode scores, up to 1 / max expected, dominate the confidence intervals). Phase 1 is the
+  paper's (MAD order, Mann-Whitney U p <= 0.05 against every chosen worker). Phase 2 replaces the
+  paper's pi*-targeting rule by *gap maximisation*: repeatedly add the candidate that most raises
+  the set's non-adaptive gap (min over policies of the mean of 1 - ratio; ties: lexicographically
+  smallest worker), among candidates at L-inf distance >= 0.2 (4 grid steps) from every worker
+  already chosen (the Mann-Whitney test cannot keep the set diverse here: the highest-MAD workers
+  are overloaded ones whose returns are all-or-nothing, and a location test finds almost nothing
+  significantly different from them, so phase 1 stops after two workers). Caps as v1 (16 narrow, 8
+  per wide task); wide-v2 samples tasks with wide-v1's seed and rejection rule.
+- **What the selection does.** Gap maximisation pairs workers on which greedy building fails
+  (paper family, w_0 = 1) with workers on which any parallel building fails (overloaded family):
+  every fixed policy loses about half the suite, and the best fixed policy scores no better than
+  the random task-specific baseline (its skill is about 0). What an agent wins on v2 it wins by
+  adaptation: first of all, telling the two families apart from the mistakes it sees.
 """
 
 
-def write_report(out_dir: Path, names: tuple[str, ...] = SHIPPED_SUITES) -> list[Path]:
+def families_section(suite: Suite) -> list[str]:
+    """Markdown lines: each v2 task's worker families and its meta-train mixture."""
+    lines = ["", "### Worker families and meta-train distribution", "",
+             "| task | family | order | average worker | sigma | MAD at avg |", "|---|---|---|---|---|---|"]
+    for t, raw in zip(suite.tasks, suite.content["tasks"]):
+        mads = raw["design"].get("family_mad_at_average_worker", {})
+        for f in worker_families(t):
+            lines.append(f"| {t.name} | {f.name} | {f.monotone} | {_fmt(f.centre)} | {_fmt(f.sigma, 2)} | {mads.get(f.name, float('nan')):.4f} |")
+    m = suite.content["generator"]["meta_train"]
+    lines += ["", f"Meta-train mixture (every task): family weights {m['family_weights']} (paper, overloaded); "
+              f"cover sampler with probability {m['cover_weight']}, else the box sampler; every worker at L-inf "
+              f"distance >= {m['grid_clearance']} from the {m['grid_step']} grid. Curation: best t-optimal return "
+              f">= {suite.content['generator']['min_best_return']}, phase 2 `{suite.content['generator']['phase2']}` with "
+              f"L-inf distance >= {suite.content['generator']['min_distance']} between curated workers."]
+    return lines
+
+
+def write_report(out_dir: Path, names: tuple[str, ...] = ALL_SUITES) -> list[Path]:
     """Write `suites.md` and one PNG per suite into `out_dir`; returns the paths written."""
     out_dir.mkdir(parents=True, exist_ok=True)
     sections, written = [HEADER], []

@@ -18,9 +18,10 @@ t-optimal policy family.
   about 0.6 s for N = 4), so each decision is one weighted average. It decides at every episode
   start and, unless `adapt_within_episode=false`, again after every mistake observation.
 
-`reset_task()` forgets the task candidates and the evidence. The agent is deterministic; `seed`
-only drives the uniform-random fallback used if no known task explains what it sees (its
-generator is reseeded at every `reset_task()`).
+`reset_task(seed=...)` forgets the task candidates and the evidence. The agent is deterministic;
+`seed` (with the unit's seed from the protocol) only drives the uniform-random fallback used if no
+known task explains what it sees. Task models are read-only and shared by all the agents of a
+process (the evaluation runner plays several side by side).
 
 Run it: `mewa-bench evaluate submissions/bayes-adaptive/agent.py --suite narrow-v1`.
 """
@@ -28,6 +29,8 @@ Run it: `mewa-bench evaluate submissions/bayes-adaptive/agent.py --suite narrow-
 from __future__ import annotations
 
 import itertools
+import sys
+import types
 from typing import Any, Sequence
 
 import numpy as np
@@ -132,8 +135,10 @@ class BayesAdaptiveAgent:
         self.models: dict[tuple, TaskModel] = {}  # built once per task, on first use
         self.reset_task()
 
-    def reset_task(self) -> None:
+    def reset_task(self, seed: int | None = None) -> None:
         """A new hidden pair: forget the task candidates and the worker evidence."""
+        if seed is not None:
+            self.rng = np.random.default_rng([self.seed, seed])
         self.task_belief.reset()
         self.evidence = Evidence()
         self.policy: TOptimal | None = None
@@ -193,8 +198,11 @@ class BayesAdaptiveAgent:
     def model(self, task: Task) -> TaskModel:
         """The task's grid model (about 0.6 s to build for N = 4, once per task)."""
         key = (task.key(), task.average_worker)
-        if key not in self.models:
-            self.models[key] = TaskModel(task, self.grid_step, self.prior_strength)
+        if key not in self.models:  # shared by the agents of one process (the runner's lanes): built once
+            shared, settings = _shared_models(), (key, self.grid_step, self.prior_strength)
+            if settings not in shared:
+                shared[settings] = TaskModel(task, self.grid_step, self.prior_strength)
+            self.models[key] = shared[settings]
         return self.models[key]
 
     def posterior_mean(self) -> np.ndarray | None:
@@ -208,3 +216,15 @@ def make_agent(observation_space: Any, action_space: Any, **kwargs: Any) -> Baye
     if getattr(action_space, "n", NUM_ACTIONS) != NUM_ACTIONS:
         raise ValueError(f"expected the MEWA action space Discrete({NUM_ACTIONS}), got {action_space}")
     return BayesAdaptiveAgent(**kwargs)
+
+
+def _shared_models() -> dict:
+    """One process-wide cache of task models (this file may be imported once per agent object)."""
+    holder = sys.modules.get(_CACHE_MODULE)
+    if holder is None:
+        holder = sys.modules[_CACHE_MODULE] = types.ModuleType(_CACHE_MODULE)
+        holder.models = {}  # type: ignore[attr-defined]
+    return holder.models  # type: ignore[attr-defined]
+
+
+_CACHE_MODULE = "_mewa_bayes_adaptive_models"

@@ -45,8 +45,10 @@ class RandomTaskSpecificAgent:
         self.rng = np.random.default_rng(self.seed)
         self.reset_task()
 
-    def reset_task(self) -> None:
-        """A new hidden pair: every known task is possible again."""
+    def reset_task(self, seed: int | None = None) -> None:
+        """A new hidden pair: every known task is possible again; coin flips reseeded from the unit's seed."""
+        if seed is not None:
+            self.rng = np.random.default_rng([self.seed, seed])
         self.task_belief.reset()
         self.episode_starting = True
 

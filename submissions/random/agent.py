@@ -1,9 +1,9 @@
 """random: the paper's random baseline as an agent, uniform over the 4 palette actions.
 
 It knows nothing and learns nothing. Its actions come from its own `numpy.random.Generator` (never
-the global RNG), seeded once from the agent arg `seed` (default 0) when the agent is built, so the
-units of a run draw different actions and a sequential run is reproducible (with `--jobs`, which
-units share a process varies, so use the default `--jobs 1` to reproduce a results file).
+the global RNG), reseeded at every `reset_task(seed=...)` from the agent arg `seed` (default 0) and
+the unit's seed that the evaluation protocol passes, so every (pair, seed) unit draws its own
+actions and a results file is reproduced exactly whatever `--jobs`, lanes or `--resume` did.
 
 Run it: `mewa-bench evaluate submissions/random/agent.py --suite narrow-v1`.
 """
@@ -25,8 +25,10 @@ class RandomAgent:
         self.seed = int(seed)
         self.rng = np.random.default_rng(self.seed)
 
-    def reset_task(self) -> None:
-        """Nothing to forget (the random stream goes on, so units do not replay the same actions)."""
+    def reset_task(self, seed: int | None = None) -> None:
+        """A new unit: its own random stream (the stream just goes on when no unit seed is given)."""
+        if seed is not None:
+            self.rng = np.random.default_rng([self.seed, seed])
 
     def act(self, obs: np.ndarray) -> int:
         """A uniformly random palette colour."""
