@@ -22,7 +22,8 @@ import numpy as np
 from mewa_bench.design.suites import load_suite
 from mewa_bench.envs.mewa_env import MewaEnv
 from mewa_bench.protocol import runner
-from mewa_bench.protocol.runner import DEFAULT_LANES, DEFAULT_SEEDS, EvalConfig, evaluate
+from mewa_bench.protocol.config import DEFAULT_LANES, DEFAULT_SEEDS, EvalConfig
+from mewa_bench.protocol.runner import evaluate
 
 REPO = Path(__file__).resolve().parents[1]
 AGENT = REPO / "tests" / "agents" / "delayed_fault_agent.py"

@@ -13,7 +13,8 @@ import time
 from pathlib import Path
 
 from mewa_bench.logs import McapSink, RerunSink
-from mewa_bench.protocol.runner import EvalConfig, evaluate
+from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.runner import evaluate
 
 AGENT = Path(__file__).resolve().parents[1] / "tests" / "agents" / "delayed_fault_agent.py"
 

@@ -13,7 +13,8 @@ from pathlib import Path
 
 from mewa_bench.datasets import LeRobotSink
 from mewa_bench.protocol import policy_agent
-from mewa_bench.protocol.runner import EvalConfig, evaluate
+from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.runner import evaluate
 
 
 def timed(record: bool) -> tuple[float, int]:

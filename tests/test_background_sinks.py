@@ -55,3 +55,15 @@ def test_a_failing_sink_is_reported_and_every_sink_still_closed() -> None:
         finally:
             writer.close()
     assert bad.closed and good.closed
+
+
+class BadStartSink(SlowSink):
+    def start(self, run: RunInfo) -> None:
+        raise OSError("cannot create the log file")
+
+
+def test_a_sink_that_fails_to_start_closes_the_ones_already_started() -> None:
+    first, bad, last = SlowSink(), BadStartSink(), SlowSink()
+    with pytest.raises(OSError, match="cannot create"):
+        BackgroundSinks([first, bad, last]).start(RUN)
+    assert first.closed and not last.closed  # the later sink was never started, so nothing to close

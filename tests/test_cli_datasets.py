@@ -24,13 +24,28 @@ def offline_hub(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_shipped_catalog_archives_match_their_entries() -> None:
+    import io
+    import tarfile
+
+    from mewa_bench.design.suites import load_suite
+    from mewa_bench.protocol.results import PROTOCOL_VERSION
+
     raw = json.loads(CATALOG.read_text())
-    assert len(raw["datasets"]) >= 2
+    assert {"narrow-v1", "narrow-v2", "wide-v2"} <= {entry["suite"] for entry in raw["datasets"]}
     for entry in raw["datasets"]:
         archive = CATALOG.parent / entry["url"]  # shipped archives sit beside the catalog
         data = archive.read_bytes()
         assert len(data) == entry["size"] and hashlib.sha256(data).hexdigest() == entry["sha256"]
-        assert entry["suite"] == "narrow-v1"
+        assert entry["suite_sha256"] == load_suite(entry["suite"]).sha256
+        agent = REPO / "submissions" / entry["policy"] / "agent.py"
+        if agent.exists():  # recorded by the shipped agent file as it is now
+            assert entry["policy_sha256"] == hashlib.sha256(agent.read_bytes()).hexdigest(), entry["name"]
+        with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+            meta_file = next(m for m in tar.getmembers() if m.name.endswith("meta/mewa.json"))
+            meta = json.loads(tar.extractfile(meta_file).read())
+        assert meta["protocol_version"] == PROTOCOL_VERSION, f"{entry['name']}: re-record under this protocol"
+        assert meta["policy"]["sha256"] == entry["policy_sha256"] and meta["suite"]["name"] == entry["suite"]
+        assert meta["policy"]["name"] == entry["policy"]  # an agent file is named by its submission folder
 
 
 def test_download_a_shipped_dataset_and_load_it_with_lerobot(tmp_path: Path) -> None:
@@ -95,3 +110,13 @@ def test_cli_rejects_unknown_policies_and_missing_submission_folders(tmp_path: P
     assert bad.exit_code == 2 and "max-expected" in text and not (tmp_path / "d").exists()
     missing = runner.invoke(app, ["leaderboard", "--submissions", str(tmp_path / "nothing"), "--out", str(tmp_path / "lb")])
     assert missing.exit_code == 1 and "no such submissions folder" in " ".join(missing.output.split())
+
+
+def test_a_log_dir_that_cannot_be_created_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("")
+    result = runner.invoke(app, ["evaluate", str(REPO / "submissions" / "random" / "agent.py"), "--seeds", "1",
+                                 "--pairs", "0", "--log", "mcap", "--log-dir", str(tmp_path / "a-file" / "logs"),
+                                 "--out", str(tmp_path / "r.json")])
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit)  # a message, not a traceback
+    assert "error:" in result.output and "Not a directory" in result.output
+    assert not (tmp_path / "r.json").exists()

@@ -27,7 +27,45 @@ def test_rules_replay_every_reference_trace(traces: list[dict]) -> None:
         replay_rules(trace)
 
 
-def test_table_agrees_with_rules_on_every_state(canonical_task: Task, small_task: Task) -> None:
+def spec_step(task: Task, obs: np.ndarray, action: int, mistake: bool) -> tuple[np.ndarray, int, list[tuple]]:
+    """SPEC section 2's step written out on the 18 observation floats, independently of `game.rules`.
+
+    Returns the next observation, the mistake type x the step risks (-1: none) and the events as
+    (kind, colour, value) in the order they happen; `mistake` decides rule 3's coin.
+    """
+    o = [int(v) for v in obs]
+    agent, struct, flag, done = o[0:4], o[4:12:2], o[5:12:2], o[12:16]
+    left, placed = o[16], o[17]
+    progress = 0
+    while progress < task.N and done[task.order[progress]]:
+        progress += 1
+    events, x = [], -1
+    if action in task.colors and agent[action] > 0:  # rule 1 otherwise: nothing changes
+        agent[action] -= 1  # rule 2
+        struct[action] += 1
+        if struct[action] == 2:  # rule 3
+            x = sum(1 for c in range(4) if struct[c] >= 1) - 1
+            if mistake:
+                flag[action] = 1
+                events.append(("mistake", action, x))
+        if struct[action] == task.M:  # rule 4
+            returned = flag[action] == 1
+            struct[action], flag[action] = 0, 0
+            if returned:
+                agent[action] += task.M
+                events.append(("structure_returned", action, task.M))
+            else:
+                done[action] = 1
+                events.append(("structure_completed", action, 0))
+                while progress < task.N and done[task.order[progress]]:
+                    events.append(("subgoal_reached", task.order[progress], progress))
+                    left, placed = left - task.worker_blocks[progress], placed + task.worker_blocks[progress]
+                    progress += 1
+    pairs = [v for c in range(4) for v in (struct[c], flag[c])]
+    return np.float32(agent + pairs + done + [left, placed]), x, events
+
+
+def test_table_agrees_with_an_independent_step_on_every_state(canonical_task: Task, small_task: Task) -> None:
     for task in (canonical_task, small_task):
         tab = transition_table(task)
         for s, state in enumerate(tab.states):
@@ -36,12 +74,18 @@ def test_table_agrees_with_rules_on_every_state(canonical_task: Task, small_task
             if tab.terminal[s]:
                 continue
             for a in range(4):
+                ok_obs, x, ok_events = spec_step(task, tab.obs[s], a, mistake=False)
+                np.testing.assert_array_equal(tab.obs[tab.next_ok[s, a]], ok_obs, err_msg=f"state {s} action {a}")
+                assert tab.mistake_type[s, a] == x
+                assert [tuple(e) for e in tab.event_sets[tab.events_ok[s, a]]] == ok_events
                 out = outcomes(task, state, a)
-                assert tab.states[tab.next_ok[s, a]] == out.ok
-                assert tab.mistake_type[s, a] == out.mistake_type
-                if out.mistake is not None:
-                    assert tab.states[tab.next_mistake[s, a]] == out.mistake
-                assert tab.event_sets[tab.events_ok[s, a]] == out.ok_events
+                if x >= 0:
+                    bad_obs, _, bad_events = spec_step(task, tab.obs[s], a, mistake=True)
+                    np.testing.assert_array_equal(tab.obs[tab.next_mistake[s, a]], bad_obs)
+                    assert [tuple(e) for e in tab.event_sets[tab.events_mistake[s, a]]] == bad_events
+                    assert [tuple(e) for e in out.mistake_events] == bad_events
+                else:
+                    assert out.mistake is None and out.mistake_events == ()
 
 
 def test_canonical_state_space_size(canonical_task: Task) -> None:

@@ -12,7 +12,7 @@ import pytest
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.leaderboard import LeaderboardReport, build_leaderboards
 from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, write_results
-from mewa_bench.protocol.runner import DEFAULT_SEEDS
+from mewa_bench.protocol.config import DEFAULT_SEEDS
 from mewa_bench.protocol.scoring import score_units
 
 SEEDS = list(DEFAULT_SEEDS)  # only runs with the protocol's default seeds are ranked

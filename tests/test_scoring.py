@@ -15,7 +15,8 @@ from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.game import luck
 from mewa_bench.game.normalise import normalised_return
 from mewa_bench.protocol import policy_agent
-from mewa_bench.protocol.runner import EvalConfig, evaluate
+from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.runner import evaluate
 from mewa_bench.protocol.scoring import (control_variates, episode_scores, interquartile_mean, score_units, skill_of,
                                          stratified_resamples)
 

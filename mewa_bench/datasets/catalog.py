@@ -15,7 +15,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from mewa_bench.design.suites import write_json_atomic
+from mewa_bench.files import write_json_atomic
 
 CATALOG_FORMAT_VERSION = 1
 CATALOG_ENV = "MEWA_DATASETS_CATALOG"

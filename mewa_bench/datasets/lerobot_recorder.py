@@ -14,6 +14,18 @@ Run provenance (suite name and hash, policy and its sha256, seeds, versions) and
 truth (task parameters, worker, exact float64 returns) go to `meta/mewa.json`: LeRobot rewrites
 `meta/info.json` itself and drops keys it does not know, so it cannot carry them.
 
+On disk (LeRobot v3.0; frames of many episodes share a file, `meta/episodes` says where each starts):
+
+    <root>/
+    ├── data/chunk-000/file-000.parquet       frames: the columns above, plus LeRobot's index columns
+    ├── videos/observation.images.top/chunk-000/file-000.mp4   only with --video in SAPIEN mode
+    └── meta/
+        ├── info.json                         LeRobot's schema: features, fps, counts, path templates
+        ├── stats.json                        per-feature statistics (LeRobot computes them)
+        ├── tasks.parquet                     the task strings
+        ├── episodes/chunk-000/file-000.parquet   one row per episode: length, data/video offsets
+        └── mewa.json                         ours: provenance and per-pair ground truth (above)
+
 Read it back with `LeRobotDataset(repo_id, root=..., video_backend="pyav")` (without the backend,
 lerobot probes torchcodec, which cannot load here and prints a long traceback before falling back).
 lerobot (and torch) are imported only when the first unit is written.
@@ -30,7 +42,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from mewa_bench.game.palette import COLOR_NAMES, OBS_SIZE
+from mewa_bench.game.palette import (COLOR_NAMES, OBS_AGENT_BLOCKS, OBS_COMPLETED, OBS_MISTAKE_FLAGS, OBS_SIZE,
+                                      OBS_STRUCTURE_BLOCKS, OBS_WORKER_LEFT, OBS_WORKER_PLACED)
 from mewa_bench.protocol.trajectory import EpisodeRecord, RunInfo, UnitRecord
 
 MEWA_META_FILE = Path("meta") / "mewa.json"
@@ -53,11 +66,13 @@ INDEX_COLUMNS = {
 
 def state_names() -> list[str]:
     """Names of the 18 observation entries (SPEC section 2)."""
-    names = [f"agent_blocks.{c}" for c in COLOR_NAMES]
-    names += [f"structure.{c}.{part}" for c in COLOR_NAMES for part in ("blocks", "mistake")]
-    names += [f"completed.{c}" for c in COLOR_NAMES]
-    names += ["worker_blocks_left", "worker_blocks_placed"]
-    assert len(names) == OBS_SIZE
+    names = [""] * OBS_SIZE
+    for where, prefix, suffix in ((OBS_AGENT_BLOCKS, "agent_blocks", ""), (OBS_STRUCTURE_BLOCKS, "structure", ".blocks"),
+                                  (OBS_MISTAKE_FLAGS, "structure", ".mistake"), (OBS_COMPLETED, "completed", "")):
+        for index, colour in zip(range(OBS_SIZE)[where], COLOR_NAMES):
+            names[index] = f"{prefix}.{colour}{suffix}"
+    names[OBS_WORKER_LEFT], names[OBS_WORKER_PLACED] = "worker_blocks_left", "worker_blocks_placed"
+    assert all(names)
     return names
 
 
@@ -314,6 +329,7 @@ class LeRobotSink:
             "suite": {"name": r.suite, "sha256": r.suite_sha256},
             "policy": {"name": r.agent, "sha256": r.agent_sha256, **r.extra},
             "env": {"id": r.env_id, "version": r.env_version, "mode": r.mode},
+            "protocol_version": r.protocol_version,
             "seeds": list(r.seeds), "episodes_per_pair": r.episodes_per_pair,
             "columns": INDEX_COLUMNS,
             "worker_index_order": "suite" if self.workers_from_suite else "first appearance in this recording",
@@ -325,7 +341,7 @@ class LeRobotSink:
 
     def _write_meta(self) -> None:
         """Write `meta/mewa.json` atomically."""
-        from mewa_bench.design.suites import write_json_atomic
+        from mewa_bench.files import write_json_atomic
 
         write_json_atomic(self.root / MEWA_META_FILE, self.metadata())
 

@@ -101,8 +101,12 @@ def _provenance(dataset_dir: Path) -> dict[str, Any]:
 
 
 def pack_dataset(dataset_dir: Path | str, out_dir: Path | str, name: str, version: str, suite: str, policy: str,
-                 url_base: str | None = None) -> dict[str, Any]:
-    """Archive a dataset deterministically; returns its catalog entry (URL under `url_base`, else a file URL)."""
+                 url_base: str | None = None, catalog_dir: Path | str | None = None) -> dict[str, Any]:
+    """Archive a dataset deterministically; returns its catalog entry.
+
+    Its URL: under `url_base` if given; else the archive's name when it sits in `catalog_dir` (the
+    catalog's folder: shipped datasets travel with their catalog); else a file URL.
+    """
     dataset_dir, out_dir = Path(dataset_dir), Path(out_dir)
     if not NAME_RE.match(name):
         raise DatasetError(f"dataset name {name!r} must be letters, digits, '.', '_' or '-'")
@@ -110,7 +114,12 @@ def pack_dataset(dataset_dir: Path | str, out_dir: Path | str, name: str, versio
     out_dir.mkdir(parents=True, exist_ok=True)
     archive = out_dir / archive_name(name, version)
     write_archive(dataset_dir, archive, name)
-    url = f"{url_base.rstrip('/')}/{archive.name}" if url_base else archive.resolve().as_uri()
+    if url_base:
+        url = f"{url_base.rstrip('/')}/{archive.name}"
+    elif catalog_dir is not None and archive.resolve().parent == Path(catalog_dir).resolve():
+        url = archive.name
+    else:
+        url = archive.resolve().as_uri()
     entry = {"name": name, "version": version, "suite": suite, "policy": policy,
              "episodes": int(info["total_episodes"]), "frames": int(info["total_frames"]),
              "size": archive.stat().st_size, "sha256": sha256_file(archive), "url": url,

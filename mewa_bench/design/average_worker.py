@@ -42,11 +42,12 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.optimize import minimize
 
+from mewa_bench.design.references import DECIMALS
+
 DELTAS: tuple[float, ...] = (0.075, 0.13125, 0.1875, 0.24375, 0.3)
 EPSILONS: tuple[float, ...] = (0.075, 0.1125, 0.15, 0.1875, 0.225)
 MARGIN = 1e-6
 W_MAX = 1.0 - MARGIN
-DECIMALS = 12
 SIGNIFICANT = 12
 N_RANDOM_STARTS = 12
 START_SEED = 20230601

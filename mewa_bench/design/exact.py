@@ -301,3 +301,11 @@ def expected_returns(task: Task, policies: Sequence[Policy | str] | None, worker
     for start in range(0, len(arr), chunk):
         raw[:, start : start + chunk] = _values_block(plan, tables, arr[start : start + chunk])
     return normalised_return(task, raw) if normalised else raw
+
+
+def best_toptimal(task: Task, worker: np.ndarray | Sequence[float]) -> tuple[Policy, float]:
+    """The t-optimal policy with the highest exact expected normalised return for `worker`, and that return."""
+    family = toptimal_family(task.N)
+    values = expected_returns(task, family, as_workers([worker], task.N))[:, 0]
+    best = int(np.argmax(values))  # ties: the first in canonical order
+    return family[best], float(values[best])

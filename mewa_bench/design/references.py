@@ -11,7 +11,9 @@ from typing import Any
 
 import numpy as np
 
-DECIMALS = 12
+from mewa_bench.game.normalise import episode_score, skill_of
+
+DECIMALS = 12  # every float a suite or results file stores is rounded to this many decimals
 
 
 def round_floats(x: Any) -> Any:
@@ -36,10 +38,10 @@ def summarise(pairs: list[dict[str, Any]]) -> dict[str, Any]:
     }
     best = np.array(cols["max_expected"])
     normalised = {k: round_floats(float(np.mean(v))) for k, v in cols.items()}
-    score = {k: round_floats(float(np.mean(np.array(v) / best))) for k, v in cols.items()}
+    score = {k: round_floats(float(np.mean(episode_score(np.array(v), best)))) for k, v in cols.items()}
     s_rts = score["random_task_specific"]
     return {
         "pairs": len(pairs), "normalised": normalised, "score": score,
         "non_adaptive_gap": round_floats(1.0 - score["best_fixed"]),
-        "skill": {k: round_floats((s - s_rts) / (1.0 - s_rts)) for k, s in score.items()},
+        "skill": {k: round_floats(skill_of(s, s_rts)) for k, s in score.items()},
     }

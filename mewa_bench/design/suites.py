@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from mewa_bench.files import json_text
 from mewa_bench.game.task import Task, Worker
 
 SUITE_FORMAT_VERSION = 1
@@ -71,36 +70,9 @@ def content_hash(content: dict[str, Any]) -> str:
     return hashlib.sha256(canonical_json(body).encode()).hexdigest()
 
 
-def json_text(content: Any) -> str:
-    """The project's JSON files: sorted keys, one-space indent, no NaN, a final newline."""
-    return json.dumps(content, sort_keys=True, indent=1, allow_nan=False) + "\n"
-
-
 def suite_text(content: dict[str, Any]) -> str:
     """The exact bytes of a suite file: content plus its hash."""
     return json_text({**{k: v for k, v in content.items() if k != "sha256"}, "sha256": content_hash(content)})
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Write a file via a temporary sibling and rename, so a good file is never half-overwritten."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; results and suites are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def write_json_atomic(path: Path, content: Any) -> None:
-    """Write `json_text(content)` atomically."""
-    write_atomic(path, json_text(content))
 
 
 def shipped_path(name: str) -> Path:

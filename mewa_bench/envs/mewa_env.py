@@ -11,7 +11,8 @@ from gymnasium import spaces
 from mewa_bench.envs.pairs import PairSource, as_task
 from mewa_bench.game import luck
 from mewa_bench.game.normalise import return_bounds
-from mewa_bench.game.palette import COLOR_NAMES, NUM_COLORS, OBS_SIZE
+from mewa_bench.game.palette import (COLOR_NAMES, NUM_COLORS, OBS_AGENT_BLOCKS, OBS_COMPLETED, OBS_MISTAKE_FLAGS,
+                                      OBS_SIZE, OBS_STRUCTURE_BLOCKS, OBS_WORKER_LEFT, OBS_WORKER_PLACED)
 from mewa_bench.game.table import transition_table
 from mewa_bench.game.task import Task, Worker
 
@@ -290,9 +291,11 @@ def _fast_table(task: Task) -> _FastTable:
 def render_text(task: Task, obs: np.ndarray, t: int) -> str:
     """A few lines describing an observation, for humans."""
     lines = [f"step {t}/{task.T}  order: {' > '.join(COLOR_NAMES[c] for c in task.order)}"]
+    agent, blocks, flags, completed = (obs[OBS_AGENT_BLOCKS], obs[OBS_STRUCTURE_BLOCKS], obs[OBS_MISTAKE_FLAGS],
+                                       obs[OBS_COMPLETED])
     for c in task.colors:
-        flag = " (mistake)" if obs[5 + 2 * c] else ""
-        done = " done" if obs[12 + c] else ""
-        lines.append(f"  {COLOR_NAMES[c]:<6} agent {int(obs[c])}  structure {int(obs[4 + 2 * c])}{flag}{done}")
-    lines.append(f"  worker blocks: {int(obs[17])} placed, {int(obs[16])} to place")
+        flag = " (mistake)" if flags[c] else ""
+        done = " done" if completed[c] else ""
+        lines.append(f"  {COLOR_NAMES[c]:<6} agent {int(agent[c])}  structure {int(blocks[c])}{flag}{done}")
+    lines.append(f"  worker blocks: {int(obs[OBS_WORKER_PLACED])} placed, {int(obs[OBS_WORKER_LEFT])} to place")
     return "\n".join(lines)

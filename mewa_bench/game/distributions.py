@@ -201,11 +201,6 @@ def sample_meta_train_workers(task: Task, rng: np.random.Generator, n: int, incl
     return out
 
 
-def sample_train_worker(task: Task, rng: np.random.Generator, include_centre: bool = False) -> tuple[float, ...]:
-    """One meta-train worker of the task's own distribution (see `sample_meta_train_workers`)."""
-    return tuple(float(v) for v in sample_meta_train_workers(task, rng, 1, include_centre)[0])
-
-
 def worker_grid(n: int, step: float = 0.05, monotone: str = NON_INCREASING) -> np.ndarray:
     """All workers of one monotone order on the `step` grid over [0, 1]^n, lexicographically sorted, [m, n]."""
     k = int(round(1.0 / step))

@@ -1,6 +1,9 @@
-"""Normalised return of an episode (SPEC section 2): 0 = worst possible, 1 = perfect episode."""
+"""Normalised return of an episode (SPEC section 2): 0 = worst possible, 1 = perfect episode; and the
+protocol's two ratios built on it, score and skill (their only definitions)."""
 
 from __future__ import annotations
+
+import numpy as np
 
 from mewa_bench.game.task import Task
 
@@ -17,3 +20,13 @@ def normalised_return(task: Task, episode_return: float) -> float:
     """(R - R_min) / (R_max - R_min)."""
     r_min, r_max = return_bounds(task)
     return (episode_return - r_min) / (r_max - r_min)
+
+
+def episode_score(normalised: np.ndarray | float, max_expected: np.ndarray | float) -> np.ndarray | float:
+    """The protocol's score of an episode: s = normalised return / the pair's max-expected baseline."""
+    return np.divide(normalised, max_expected)
+
+
+def skill_of(score: np.ndarray | float, rts_score: float) -> np.ndarray | float:
+    """skill = (S - S_rts) / (1 - S_rts): 0 = random task-specific, 1 = best t-optimal per worker."""
+    return (score - rts_score) / (1.0 - rts_score)

@@ -12,7 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mewa_bench.game.palette import NUM_COLORS, OBS_SIZE
+from mewa_bench.game.palette import (NUM_COLORS, OBS_AGENT_BLOCKS, OBS_COMPLETED, OBS_MISTAKE_FLAGS, OBS_SIZE,
+                                      OBS_STRUCTURE_BLOCKS, OBS_WORKER_LEFT, OBS_WORKER_PLACED)
 from mewa_bench.game.task import Task
 
 State = tuple[int, ...]
@@ -125,13 +126,13 @@ def outcomes(task: Task, state: State, action: int) -> Outcomes:
 def observation(task: Task, state: State) -> np.ndarray:
     """The float32[18] observation of a state."""
     obs = np.zeros(OBS_SIZE, dtype=np.float32)
-    obs[0:4] = state[AGENT : AGENT + NUM_COLORS]
-    obs[4:12:2] = state[STRUCT : STRUCT + NUM_COLORS]
-    obs[5:12:2] = state[FLAG : FLAG + NUM_COLORS]
-    obs[12:16] = state[DONE : DONE + NUM_COLORS]
+    obs[OBS_AGENT_BLOCKS] = state[AGENT : AGENT + NUM_COLORS]
+    obs[OBS_STRUCTURE_BLOCKS] = state[STRUCT : STRUCT + NUM_COLORS]
+    obs[OBS_MISTAKE_FLAGS] = state[FLAG : FLAG + NUM_COLORS]
+    obs[OBS_COMPLETED] = state[DONE : DONE + NUM_COLORS]
     placed = sum(task.worker_blocks[: state[PROGRESS]])
-    obs[16] = sum(task.worker_blocks) - placed
-    obs[17] = placed
+    obs[OBS_WORKER_LEFT] = sum(task.worker_blocks) - placed
+    obs[OBS_WORKER_PLACED] = placed
     return obs
 
 
@@ -139,12 +140,13 @@ def state_from_observation(task: Task, obs: np.ndarray) -> State:
     """Invert `observation` (progress is recovered from the worker's placed blocks and completions)."""
     o = [int(round(float(v))) for v in obs]
     s = [0] * STATE_SIZE
-    s[AGENT : AGENT + NUM_COLORS] = o[0:4]
-    s[STRUCT : STRUCT + NUM_COLORS] = o[4:12:2]
-    s[FLAG : FLAG + NUM_COLORS] = o[5:12:2]
-    s[DONE : DONE + NUM_COLORS] = o[12:16]
+    s[AGENT : AGENT + NUM_COLORS] = o[OBS_AGENT_BLOCKS]
+    s[STRUCT : STRUCT + NUM_COLORS] = o[OBS_STRUCTURE_BLOCKS]
+    s[FLAG : FLAG + NUM_COLORS] = o[OBS_MISTAKE_FLAGS]
+    completed = o[OBS_COMPLETED]
+    s[DONE : DONE + NUM_COLORS] = completed
     p = 0
-    while p < task.N and o[12 + task.order[p]] == 1:
+    while p < task.N and completed[task.order[p]] == 1:
         p += 1
     s[PROGRESS] = p
     return tuple(s)

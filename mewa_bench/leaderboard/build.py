@@ -10,7 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from mewa_bench.design.suites import ALL_SUITES, load_suite, write_atomic
+from mewa_bench.design.suites import ALL_SUITES, load_suite
+from mewa_bench.files import write_atomic
 from mewa_bench.leaderboard.board import Board, make_board
 from mewa_bench.leaderboard.plot import plot_curves
 from mewa_bench.leaderboard.render import csv_text, index_html, markdown

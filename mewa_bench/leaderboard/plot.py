@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from mewa_bench.leaderboard.board import Board, reference_rows
-from mewa_bench.protocol.runner import EPISODES_PER_PAIR
+from mewa_bench.protocol.config import EPISODES_PER_PAIR
 from mewa_bench.reports.figures import save_png
 
 _REFERENCE_GREYS = ("#000000", "#444444", "#777777", "#999999", "#bbbbbb")

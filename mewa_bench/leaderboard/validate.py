@@ -20,7 +20,7 @@ import numpy as np
 
 from mewa_bench.design.suites import ALL_SUITES, Suite, SuiteError, load_suite
 from mewa_bench.protocol.results import PROTOCOL_VERSION, ResultsError, read_results
-from mewa_bench.protocol.runner import DEFAULT_SEEDS, EPISODES_PER_PAIR
+from mewa_bench.protocol.config import DEFAULT_SEEDS, EPISODES_PER_PAIR
 from mewa_bench.protocol.scoring import Scores, episode_scores, score_units
 
 TOLERANCE = 1e-9

@@ -49,7 +49,7 @@ def run_metadata(run: RunInfo) -> dict[str, str]:
         "agent": run.agent, "agent_sha256": run.agent_sha256, "suite": run.suite, "suite_sha256": run.suite_sha256,
         "seeds": ",".join(str(s) for s in run.seeds), "episodes_per_pair": str(run.episodes_per_pair),
         "env_id": run.env_id, "env_version": run.env_version, "package_version": run.package_version,
-        "mode": run.mode,
+        "mode": run.mode, "protocol_version": str(run.protocol_version),
     }
     for key, value in sorted(run.extra.items()):
         meta.setdefault(key, value if isinstance(value, str) else json.dumps(value, sort_keys=True))

@@ -32,8 +32,8 @@ class PolicyPlayer:
 
     def reset_task(self, hidden: dict | None = None) -> None:
         """Set up the policy for the pair's task (and worker, for max-expected)."""
-        from mewa_bench.design.exact import expected_returns
-        from mewa_bench.design.policies import PolicyAgent, policy_names
+        from mewa_bench.design.exact import best_toptimal
+        from mewa_bench.design.policies import PolicyAgent
         from mewa_bench.game.task import Task
 
         if hidden is None:
@@ -41,9 +41,7 @@ class PolicyPlayer:
         task = Task.from_dict(hidden["task"])
         name = self.policy_name
         if name == MAX_EXPECTED:
-            names = policy_names(task.N, baselines=False)
-            values = expected_returns(task, names, [hidden["worker"]])[:, 0]
-            name = names[int(np.argmax(values))]
+            name = best_toptimal(task, hidden["worker"])[0].name
         self.player = PolicyAgent(name, task, self.rng)
 
     def act(self, observation: np.ndarray) -> int:
@@ -55,6 +53,19 @@ class PolicyPlayer:
     def end_episode(self) -> None:
         """Policies restart their counters at every episode."""
         self.player.reset()
+
+
+def check_policy_name(policy: str) -> None:
+    """Raise ValueError, naming the choices, unless `policy` is a baseline this agent can play."""
+    from mewa_bench.design.policies import policy_from_name
+
+    if policy == MAX_EXPECTED:
+        return
+    try:
+        policy_from_name(policy)
+    except ValueError:
+        raise ValueError(f"unknown policy {policy!r}: expected random, random-task-specific, {MAX_EXPECTED}, "
+                         "toptimal(rho1=R1,rho2=R2,q=Q), or an agent .py file") from None
 
 
 def make_agent(observation_space: Any, action_space: Any, policy: str = "random", seed: str = "0") -> PolicyPlayer:

@@ -18,10 +18,19 @@ Layout (schema 2, protocol 2; schema-1 files of protocol 1 still load and are sh
 from __future__ import annotations
 
 import json
+import os
+import platform
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from mewa_bench.design.suites import write_json_atomic
+from mewa_bench.design.references import summarise
+from mewa_bench.design.suites import Suite
+from mewa_bench.envs.mewa_env import ENV_VERSION
+from mewa_bench.files import write_json_atomic
+from mewa_bench.protocol.agent import agent_sha256
+from mewa_bench.protocol.config import EvalConfig, agent_name
+from mewa_bench.protocol.scoring import score_units
 
 SCHEMA_VERSION = 2
 PROTOCOL_VERSION = 2
@@ -98,3 +107,71 @@ def _validate(results: Any, where: str) -> None:
 def stable_view(results: dict[str, Any]) -> dict[str, Any]:
     """The results without the fields that legitimately differ between identical runs."""
     return {k: v for k, v in results.items() if k not in VOLATILE_FIELDS}
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (the affinity mask where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def machine_info() -> dict[str, Any]:
+    """Where the run happened (the results file's `machine`)."""
+    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": available_cpus(),
+            "processor": platform.machine()}
+
+
+def new_results(config: EvalConfig, suite: Suite) -> dict[str, Any]:
+    """The header of a results file, before any unit."""
+    from mewa_bench import __version__
+
+    return {
+        "schema_version": SCHEMA_VERSION, "protocol_version": PROTOCOL_VERSION, "complete": False,
+        "agent": {"name": config.name or agent_name(config.agent_path), "file": str(config.agent_path),
+                  "sha256": agent_sha256(config.agent_path), "privileged": config.privileged,
+                  "agent_args": dict(sorted(config.agent_args.items())), "checkpoint": config.checkpoint},
+        "suite": {"name": suite.name, "version": suite.content["version"], "sha256": suite.sha256},
+        "env": {"id": suite.content["env_id"], "version": ENV_VERSION, "mode": config.mode,
+                **({"image_size": list(config.image_size)} if config.mode == "sapien" else {})},
+        "package_version": __version__, "seeds": list(config.seeds), "episodes_per_pair": config.episodes,
+        "pairs": list(config.pairs) if config.pairs is not None else None,
+        "isolation": {"isolated": config.isolated, "time_limit": config.time_limit, "memory_limit": config.memory_limit},
+        "execution": {"jobs": config.jobs, "lanes": config.lanes},
+        "units": [],
+        "timing": {"started": datetime.now(timezone.utc).isoformat(timespec="seconds"), "units": {}},
+        "machine": machine_info(),
+    }
+
+
+def resume_from(path: Path, fresh: dict[str, Any]) -> dict[str, Any]:
+    """Continue an earlier run of the same agent, suite and settings."""
+    old = read_results(path)
+    before, now = old.get("agent", {}), fresh["agent"]
+    if before.get("sha256") != now["sha256"]:
+        raise ResultsError(f"{path}: cannot resume: the agent file changed since this run started (sha256 "
+                           f"{str(before.get('sha256'))[:12]}… then, {now['sha256'][:12]}… now); results of two "
+                           f"different agents cannot be mixed: start a new run (--out FILE, or --overwrite)")
+    for key in ("agent", "suite", "seeds", "episodes_per_pair", "pairs", "env"):
+        if old.get(key) != fresh.get(key):
+            raise ResultsError(f"{path}: cannot resume: {key} differs from this run "
+                               f"({old.get(key)!r} in the file, {fresh.get(key)!r} now)")
+    return old
+
+
+def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
+    """Add scores and baselines to a results dict whose units are all done.
+
+    A partial run (--pairs) is compared with the references over its own pairs, never the whole suite's.
+    """
+    units = results["units"] = sorted(results["units"], key=unit_key)
+    partial = results.get("pairs") is not None
+    if partial:
+        played = [suite.pairs[i].data for i in results["pairs"]]
+        baselines = {**summarise(played), "pairs": list(results["pairs"])}
+    else:
+        baselines = {"score": suite.summary["score"], "skill": suite.summary["skill"],
+                     "non_adaptive_gap": suite.summary["non_adaptive_gap"]}
+    scores = score_units(suite, units, baselines["score"]["random_task_specific"])
+    results["scores"] = scores.to_dict()
+    results["baselines"] = baselines
+    results["complete"] = not partial
+    return results

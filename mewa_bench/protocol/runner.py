@@ -2,18 +2,18 @@
 
 For each unit the agent gets `reset_task()`, then plays the pair's episodes; its state carries
 across those episodes and is reset between units. Env seeds are derived from (suite hash, pair,
-seed, episode). Results are written after every unit (atomically), so an interrupted or failed run
-keeps what it finished and `resume=True` continues it.
+seed, episode) (`protocol.config`). Results are written as units finish (atomically, `protocol.results`),
+so an interrupted or failed run keeps what it finished and `resume=True` continues it.
+
+Here: the unit loop (`unit_calls`: one unit as a sequence of agent calls), the lanes that play
+units side by side on one agent process (`_LanePlayer`), and the dispatch over --jobs processes
+(`evaluate`).
 """
 
 from __future__ import annotations
 
-import hashlib
-import os
-import platform
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from multiprocessing import get_context
 from pathlib import Path
@@ -21,94 +21,24 @@ from typing import Any, Callable, Generator, NamedTuple, Sequence
 
 import numpy as np
 
-
-from mewa_bench.design.references import summarise
 from mewa_bench.design.suites import Suite, load_suite
-from mewa_bench.envs.mewa_env import DEFAULT_IMAGE_SIZE, ENV_VERSION, MewaEnv
-from mewa_bench.protocol.agent import Transition, agent_sha256
-from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, END_EPISODE, RESET_TASK, STEP,
-                                           AgentError, AgentRunner, make_agent_runner)
-from mewa_bench.protocol.results import (PROTOCOL_VERSION, SCHEMA_VERSION, ResultsError, read_results, unit_key,
-                                         write_results)
-from mewa_bench.protocol.scoring import episode_score, score_units
+from mewa_bench.envs.mewa_env import MewaEnv
+from mewa_bench.protocol.agent import Transition
+from mewa_bench.protocol.config import EvalConfig, default_results_path, env_seed, hidden_pair, unit_seed
+from mewa_bench.protocol.isolation import END_EPISODE, RESET_TASK, STEP, AgentError, AgentRunner, make_agent_runner
+from mewa_bench.protocol.results import ResultsError, finish, new_results, resume_from, unit_key, write_results
+from mewa_bench.protocol.scoring import episode_score
 from mewa_bench.protocol.trajectory import BackgroundSinks, EpisodeRecord, RunInfo, StepRecord, TrajectorySink, UnitRecord
 
-EPISODES_PER_PAIR = 10
-DEFAULT_LANES = 64
 WRITE_INTERVAL = 1.0  # seconds between writes of the results file during a run
-DEFAULT_SEEDS = tuple(range(50))  # protocol 2: set by the power analysis in docs/protocol.md
 
 
 class EvaluationError(RuntimeError):
     """The agent failed during a run; says where (agent file, pair, seed, episode, step)."""
 
-    def __init__(self, message: str, kind: str) -> None:
+    def __init__(self, kind: str, message: str) -> None:  # the order of AgentError's
         super().__init__(message)
         self.kind = kind
-
-
-@dataclass(frozen=True)
-class EvalConfig:
-    """What to evaluate and how."""
-
-    agent_path: Path
-    suite: str = "narrow-v1"
-    seeds: tuple[int, ...] = DEFAULT_SEEDS
-    episodes: int = EPISODES_PER_PAIR
-    out: Path | None = None
-    name: str | None = None
-    agent_args: dict[str, str] = field(default_factory=dict)
-    checkpoint: str | None = None
-    isolated: bool = True
-    time_limit: float | None = DEFAULT_TIME_LIMIT
-    memory_limit: int | None = DEFAULT_MEMORY_LIMIT
-    privileged: bool = False
-    jobs: int = 1
-    resume: bool = False
-    overwrite: bool = False  # replace an existing results file (it is replaced when the first unit is written)
-    pairs: tuple[int, ...] | None = None  # a subset of pairs, for quick checks (the run is then partial)
-    collect_trajectories: bool = False  # set by `evaluate` when sinks are attached
-    lanes: int = DEFAULT_LANES  # agent objects played side by side per process (one IPC round trip per step for all)
-    mode: str = "vector"  # or "sapien": agents observe {"state": float32[18], "image": uint8[H, W, 3]}
-    image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE
-
-
-def agent_name(path: Path) -> str:
-    """`submissions/foo/agent.py` -> "foo"; `my_agent.py` -> "my_agent"."""
-    return path.parent.name if path.stem == "agent" else path.stem
-
-
-def default_results_path(config: EvalConfig, suite: Suite) -> Path:
-    """`results/<agent>-<suite>.json` in the working directory (`...-partial.json` for a --pairs run)."""
-    partial = "-partial" if config.pairs is not None else ""
-    return Path("results") / f"{config.name or agent_name(config.agent_path)}-{suite.name}{partial}.json"
-
-
-def env_seed(suite_hash: str, pair: int, seed: int, episode: int) -> int:
-    """Deterministic env seed of one episode, independent of run order and parallelism."""
-    digest = hashlib.sha256(f"{suite_hash}/{pair}/{seed}/{episode}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") >> 1
-
-
-def hidden_pair(suite: Suite, pair: int) -> dict[str, Any]:
-    """What a privileged agent is told at reset_task: the pair's task and worker."""
-    p = suite.pairs[pair]
-    return {"task": suite.tasks[p.task_index].to_dict(), "worker": list(p.worker.w)}
-
-
-def unit_seed(suite_hash: str, pair: int, seed: int) -> int:
-    """The seed an agent gets with reset_task(seed=...) for one unit (independent of order, lanes and jobs)."""
-    digest = hashlib.sha256(f"{suite_hash}/{pair}/{seed}/agent".encode()).digest()
-    return int.from_bytes(digest[:8], "little") >> 1
-
-
-def step_record(step: int, obs: Any, action: int, reward: float, next_obs: Any, terminated: bool,
-                truncated: bool, info: dict[str, Any]) -> StepRecord:
-    """A step for the sinks: state vectors, plus the image of `next_obs` in sapien mode."""
-    if isinstance(obs, dict):
-        return StepRecord(step, obs["state"], action, reward, next_obs["state"], terminated, truncated,
-                          info["progress"], info["events"], next_obs["image"])
-    return StepRecord(step, obs, action, reward, next_obs, terminated, truncated, info["progress"], info["events"])
 
 
 class AgentCall(NamedTuple):
@@ -133,17 +63,16 @@ def describe(call: AgentCall, agent_file: Path, pair: int, seed: int) -> str:
 UnitResult = tuple[dict[str, Any], UnitRecord | None]
 
 
-def unit_calls(env: MewaEnv, suite: Suite, pair: int, seed: int, config: EvalConfig
+def unit_calls(env: MewaEnv, suite: Suite, pair: int, seed: int, config: EvalConfig, collect: bool = False
                ) -> Generator[AgentCall, int | None, UnitResult]:
     """One (pair, seed) unit as a sequence of agent calls: reset_task, then `episodes` episodes.
 
     Send each call's reply (the action for a step, None otherwise); the generator returns the
-    unit's record and, if trajectories are collected, its steps. Episodes and steps count from 0,
+    unit's record and, if `collect` (sinks are attached), its steps. Episodes and steps count from 0,
     as in logs and datasets.
     """
     p = suite.pairs[pair]
     task, worker = suite.tasks[p.task_index], p.worker.w
-    collect = config.collect_trajectories
     hidden = hidden_pair(suite, pair) if config.privileged else None
     yield AgentCall(RESET_TASK, (hidden, unit_seed(suite.sha256, pair, seed)), -1, -1)
     seeds, returns, normalised, lengths, played = [], [], [], [], []
@@ -157,7 +86,7 @@ def unit_calls(env: MewaEnv, suite: Suite, pair: int, seed: int, config: EvalCon
             next_obs, reward, terminated, truncated, info = env.step(action)
             transition = Transition(obs, action, float(reward), next_obs, terminated, truncated)
             if collect:
-                steps.append(step_record(step, obs, action, float(reward), next_obs, terminated, truncated, info))
+                steps.append(StepRecord(step, transition, info["progress"], info["events"]))
             obs, step, done = next_obs, step + 1, terminated or truncated
         yield AgentCall(END_EPISODE, (transition,), k, step - 1)
         seeds.append(s)
@@ -184,8 +113,8 @@ class _LanePlayer:
     round, so crossing the process boundary costs one round trip per round, not per step.
     """
 
-    def __init__(self, config: EvalConfig, suite: Suite) -> None:
-        self.config, self.suite = config, suite
+    def __init__(self, config: EvalConfig, suite: Suite, collect: bool) -> None:
+        self.config, self.suite, self.collect = config, suite, collect
         self.envs: list[MewaEnv] = []
         self.runner: AgentRunner | None = None
 
@@ -204,7 +133,7 @@ class _LanePlayer:
                                                 c.checkpoint, isolated=c.isolated, time_limit=c.time_limit,
                                                 memory_limit=c.memory_limit, lanes=n_lanes)
             except AgentError as e:
-                raise EvaluationError(f"agent {c.agent_path}: {e}", e.kind) from None
+                raise EvaluationError(e.kind, f"agent {c.agent_path}: {e}") from None
         n_lanes = len(self.envs)
         queues = [list(units[lane::n_lanes]) for lane in range(n_lanes)]
         active: dict[int, tuple[Generator, AgentCall, float, int, int]] = {}
@@ -212,7 +141,7 @@ class _LanePlayer:
         def start(lane: int) -> None:
             if queues[lane]:
                 pair, seed = queues[lane].pop(0)
-                calls = unit_calls(self.envs[lane], self.suite, pair, seed, c)
+                calls = unit_calls(self.envs[lane], self.suite, pair, seed, c, self.collect)
                 active[lane] = (calls, next(calls), time.perf_counter(), pair, seed)
 
         for lane in range(n_lanes):
@@ -227,7 +156,7 @@ class _LanePlayer:
                 if e.index is not None and e.index < len(lanes):
                     _, failed, _, pair, seed = active[lanes[e.index]]
                     where = describe(failed, c.agent_path, pair, seed)
-                raise EvaluationError(f"{where}: {e}", e.kind) from None
+                raise EvaluationError(e.kind, f"{where}: {e}") from None
             for lane, reply in zip(lanes, replies):
                 calls, _, started, pair, seed = active[lane]
                 try:
@@ -246,78 +175,15 @@ class _LanePlayer:
 _WORKER_PLAYER: _LanePlayer | None = None
 
 
-def _worker_play(config: EvalConfig, units: list[tuple[int, int]]) -> list[tuple[dict[str, Any], float, UnitRecord | None]]:
+def _worker_play(config: EvalConfig, units: list[tuple[int, int]], collect: bool
+                 ) -> list[tuple[dict[str, Any], float, UnitRecord | None]]:
     """Entry point of a --jobs worker process: play a batch of units, reusing one player per process."""
     global _WORKER_PLAYER
     if _WORKER_PLAYER is None:
-        _WORKER_PLAYER = _LanePlayer(config, load_suite(config.suite))
+        _WORKER_PLAYER = _LanePlayer(config, load_suite(config.suite), collect)
     finished: list[tuple[dict[str, Any], float, UnitRecord | None]] = []
     _WORKER_PLAYER.play(units, lambda unit, seconds, record: finished.append((unit, seconds, record)))
     return finished
-
-
-def machine_info() -> dict[str, Any]:
-    """Where the run happened."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return {"platform": platform.platform(), "python": platform.python_version(), "cpus": cpus,
-            "processor": platform.machine()}
-
-
-def new_results(config: EvalConfig, suite: Suite) -> dict[str, Any]:
-    """The header of a results file, before any unit."""
-    from mewa_bench import __version__
-
-    return {
-        "schema_version": SCHEMA_VERSION, "protocol_version": PROTOCOL_VERSION, "complete": False,
-        "agent": {"name": config.name or agent_name(config.agent_path), "file": str(config.agent_path),
-                  "sha256": agent_sha256(config.agent_path), "privileged": config.privileged,
-                  "agent_args": dict(sorted(config.agent_args.items())), "checkpoint": config.checkpoint},
-        "suite": {"name": suite.name, "version": suite.content["version"], "sha256": suite.sha256},
-        "env": {"id": suite.content["env_id"], "version": ENV_VERSION, "mode": config.mode,
-                **({"image_size": list(config.image_size)} if config.mode == "sapien" else {})},
-        "package_version": __version__, "seeds": list(config.seeds), "episodes_per_pair": config.episodes,
-        "pairs": list(config.pairs) if config.pairs is not None else None,
-        "isolation": {"isolated": config.isolated, "time_limit": config.time_limit, "memory_limit": config.memory_limit},
-        "execution": {"jobs": config.jobs, "lanes": config.lanes},
-        "units": [],
-        "timing": {"started": datetime.now(timezone.utc).isoformat(timespec="seconds"), "units": {}},
-        "machine": machine_info(),
-    }
-
-
-def _resume_from(path: Path, fresh: dict[str, Any]) -> dict[str, Any]:
-    """Continue an earlier run of the same agent, suite and settings."""
-    old = read_results(path)
-    before, now = old.get("agent", {}), fresh["agent"]
-    if before.get("sha256") != now["sha256"]:
-        raise ResultsError(f"{path}: cannot resume: the agent file changed since this run started (sha256 "
-                           f"{str(before.get('sha256'))[:12]}… then, {now['sha256'][:12]}… now); results of two "
-                           f"different agents cannot be mixed: start a new run (--out FILE, or --overwrite)")
-    for key in ("agent", "suite", "seeds", "episodes_per_pair", "pairs", "env"):
-        if old.get(key) != fresh.get(key):
-            raise ResultsError(f"{path}: cannot resume: {key} differs from this run "
-                               f"({old.get(key)!r} in the file, {fresh.get(key)!r} now)")
-    return old
-
-
-def finish(results: dict[str, Any], suite: Suite) -> dict[str, Any]:
-    """Add scores and baselines to a results dict whose units are all done.
-
-    A partial run (--pairs) is compared with the references over its own pairs, never the whole suite's.
-    """
-    units = results["units"] = sorted(results["units"], key=unit_key)
-    partial = results.get("pairs") is not None
-    if partial:
-        played = [suite.pairs[i].data for i in results["pairs"]]
-        baselines = {**summarise(played), "pairs": list(results["pairs"])}
-    else:
-        baselines = {"score": suite.summary["score"], "skill": suite.summary["skill"],
-                     "non_adaptive_gap": suite.summary["non_adaptive_gap"]}
-    scores = score_units(suite, units, baselines["score"]["random_task_specific"])
-    results["scores"] = scores.to_dict()
-    results["baselines"] = baselines
-    results["complete"] = not partial
-    return results
 
 
 Progress = Callable[[int, int], None]
@@ -339,10 +205,8 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
     Each sink (MCAP / Rerun log, dataset recorder) gets every unit played in this call as soon as it
     finishes, and is closed at the end, also when the run fails or is interrupted.
     """
-    if sinks and not config.collect_trajectories:
-        config = replace(config, collect_trajectories=True)
     if not config.agent_path.exists():
-        raise EvaluationError(f"agent file {config.agent_path} does not exist", "load")
+        raise EvaluationError("load", f"agent file {config.agent_path} does not exist")
     for what, values in (("seeds", config.seeds), ("pairs", config.pairs or ())):
         if len(set(values)) != len(values):
             raise ValueError(f"{what} {list(values)} repeat a value: every (pair, seed) unit is played once")
@@ -354,7 +218,7 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
     out = config.out or default_results_path(config, suite)
     results = new_results(config, suite)
     if config.resume and out.exists():
-        results = _resume_from(out, results)
+        results = resume_from(out, results)
     elif out.exists() and not config.overwrite:
         raise ResultsError(f"{out} already exists: pass --resume to continue that run, --overwrite to replace it, "
                            f"or --out for another file")
@@ -386,7 +250,7 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
     try:
         writers.start(run_info(config, suite, results))
         if config.jobs <= 1 or len(todo) <= config.lanes:
-            player = _LanePlayer(config, suite)
+            player = _LanePlayer(config, suite, collect=bool(sinks))
             try:
                 player.play(todo, record)
             finally:
@@ -394,7 +258,7 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
         else:
             batches = [todo[i:i + config.lanes] for i in range(0, len(todo), config.lanes)]
             with ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn")) as pool:
-                futures = [pool.submit(_worker_play, config, batch) for batch in batches]
+                futures = [pool.submit(_worker_play, config, batch, bool(sinks)) for batch in batches]
                 try:
                     for future in as_completed(futures):
                         for finished in future.result():

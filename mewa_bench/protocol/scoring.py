@@ -32,7 +32,7 @@ import numpy as np
 from mewa_bench.design.policies import RANDOM, RANDOM_TASK_SPECIFIC, policy_names
 from mewa_bench.design.replay import replay_returns
 from mewa_bench.design.suites import Suite
-from mewa_bench.game.normalise import normalised_return
+from mewa_bench.game.normalise import episode_score, normalised_return, skill_of
 
 BOOTSTRAP_SEED = 20231105
 BOOTSTRAP_SAMPLES = 2000
@@ -42,11 +42,6 @@ CV_DECIMALS = 12  # variances are compared after rounding, so ties do not depend
 EQUAL_TOLERANCE = 1e-9  # two realised scores closer than this count as a tie (probability 1/2)
 COMPARED = ("best_fixed", "max_expected", "random_task_specific", "random")  # realised on the same keys
 EXACT_ONLY = ("known_worker_optimum",)  # compared by exact expectation only (no policy to replay)
-
-
-def episode_score(normalised: np.ndarray | float, max_expected: np.ndarray | float) -> np.ndarray | float:
-    """s = normalised return / the pair's max-expected baseline."""
-    return np.divide(normalised, max_expected)
 
 
 def episode_scores(normalised: np.ndarray, max_expected: np.ndarray) -> np.ndarray:
@@ -59,11 +54,6 @@ def episode_scores(normalised: np.ndarray, max_expected: np.ndarray) -> np.ndarr
     if (max_expected <= 0).any():
         raise ValueError("max-expected baselines must be positive")
     return episode_score(normalised, max_expected[:, None])
-
-
-def skill_of(score: np.ndarray | float, rts_score: float) -> np.ndarray | float:
-    """skill = (S - S_rts) / (1 - S_rts): 0 = random task-specific, 1 = best t-optimal per worker."""
-    return (score - rts_score) / (1.0 - rts_score)
 
 
 @dataclass(frozen=True)

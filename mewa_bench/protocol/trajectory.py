@@ -15,22 +15,49 @@ from typing import Any, Protocol, Sequence
 import numpy as np
 
 from mewa_bench.game.rules import Event
+from mewa_bench.protocol.agent import Transition, state_vector
+from mewa_bench.protocol.results import PROTOCOL_VERSION
 
 
 @dataclass(frozen=True)
 class StepRecord:
-    """One env step of an episode."""
+    """One env step of an episode: the transition the agent was shown, and what the env reported beside it."""
 
     step: int  # 0-based within the episode
-    obs: np.ndarray  # float32[18], before the action
-    action: int
-    reward: float
-    next_obs: np.ndarray
-    terminated: bool
-    truncated: bool
+    transition: Transition  # observations are {"state", "image"} dicts in sapien mode
     progress: int  # sub-goals reached after the step
     events: tuple[Event, ...]
-    image: np.ndarray | None = None  # uint8[H, W, 3] of `next_obs` in sapien mode
+
+    @property
+    def obs(self) -> np.ndarray:
+        """float32[18] state before the action."""
+        return state_vector(self.transition.obs)
+
+    @property
+    def next_obs(self) -> np.ndarray:
+        """float32[18] state after the action."""
+        return state_vector(self.transition.next_obs)
+
+    @property
+    def action(self) -> int:
+        return self.transition.action
+
+    @property
+    def reward(self) -> float:
+        return self.transition.reward
+
+    @property
+    def terminated(self) -> bool:
+        return self.transition.terminated
+
+    @property
+    def truncated(self) -> bool:
+        return self.transition.truncated
+
+    @property
+    def image(self) -> np.ndarray | None:
+        """uint8[H, W, 3] camera image of `next_obs` in sapien mode, else None."""
+        return self.transition.next_obs["image"] if isinstance(self.transition.next_obs, dict) else None
 
 
 @dataclass(frozen=True)
@@ -72,6 +99,7 @@ class RunInfo:
     env_version: str
     package_version: str
     mode: str = "vector"
+    protocol_version: int = PROTOCOL_VERSION  # how worker luck was drawn (protocol 2: coupled to the episode seed)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -105,8 +133,13 @@ class BackgroundSinks:
 
     def start(self, run: RunInfo) -> None:
         """Start every sink (in the caller's thread, so a bad path fails at once), then the writer thread."""
-        for sink in self.sinks:
-            sink.start(run)
+        for started, sink in enumerate(self.sinks):
+            try:
+                sink.start(run)
+            except BaseException:
+                for earlier in self.sinks[:started]:  # leave no open file behind
+                    earlier.close()
+                raise
         self._thread.start()
         self._started = True
 

@@ -3,7 +3,7 @@
 PRIVILEGED: the evaluator tells it the hidden pair, `reset_task({"task": Task.to_dict(), "worker":
 [w_0, ...]})`, which only privileged runs do (`mewa-bench evaluate ... --privileged`); its results
 are marked privileged and never ranked. It computes the exact expected return of every t-optimal
-policy for that worker (`mewa_bench.design.exact.expected_returns`) and plays the best one in every
+policy for that worker (`mewa_bench.design.exact.best_toptimal`) and plays the best one in every
 episode: its expected score is the max-expected baseline, 1.0 by definition. It learns nothing.
 
 Run it: `mewa-bench evaluate submissions/oracle-t-optimal/agent.py --suite narrow-v1 --privileged`.
@@ -15,22 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from mewa_bench.design.exact import expected_returns
-from mewa_bench.design.policies import TOptimal, toptimal_family
+from mewa_bench.design.exact import best_toptimal
+from mewa_bench.design.policies import TOptimal
 from mewa_bench.game.rules import state_from_observation
 from mewa_bench.game.task import Task
 from mewa_bench.protocol.agent import Transition, state_vector
 
 PRIVILEGED = True
 NUM_ACTIONS = 4
-
-
-def best_toptimal(task: Task, worker: np.ndarray) -> tuple[TOptimal, float]:
-    """The t-optimal policy with the highest exact expected normalised return for `worker`, and that return."""
-    family = toptimal_family(task.N)
-    values = expected_returns(task, family, worker[None, :])[:, 0]
-    best = int(np.argmax(values))
-    return family[best], float(values[best])
 
 
 class OracleTOptimalAgent:

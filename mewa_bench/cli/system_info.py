@@ -42,6 +42,6 @@ def render_device_text() -> str:
 
 
 def _cpu_count() -> int:
-    import os
+    from mewa_bench.protocol.results import available_cpus
 
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return available_cpus()

@@ -19,7 +19,7 @@ console = Console()
 @app.command()
 def info() -> None:
     """Show versions of mewa-bench and its key dependencies, the env ids, Python and the platform."""
-    from mewa_bench.system_info import system_info
+    from mewa_bench.cli.system_info import system_info
 
     table = Table(show_header=False, box=None)
     for key, value in system_info().items():
@@ -70,8 +70,8 @@ def evaluate(
     image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
 ) -> None:
     """Score an agent on a frozen suite under the 10-episode adaptation protocol and write a results file."""
-    from mewa_bench.protocol.runner import EvalConfig
-    from mewa_bench.results_tables import results_table
+    from mewa_bench.protocol.config import EvalConfig
+    from mewa_bench.cli.results_tables import results_table
 
     config = EvalConfig(
         agent_path=agent, suite=suite, seeds=_parse_seeds(seeds), out=out, name=name,
@@ -88,31 +88,19 @@ def evaluate(
         console.print(f"log: {p}")
 
 
-def _check_policy_name(policy: str) -> None:
-    """Reject an unknown baseline policy name before anything runs."""
-    from mewa_bench.design.policies import policy_from_name
-    from mewa_bench.protocol.policy_agent import MAX_EXPECTED
-
-    if policy == MAX_EXPECTED:
-        return
-    try:
-        policy_from_name(policy)
-    except ValueError:
-        raise typer.BadParameter(f"unknown policy {policy!r}: expected random, random-task-specific, {MAX_EXPECTED}, "
-                                 "toptimal(rho1=R1,rho2=R2,q=Q), or an agent .py file", param_hint="--policy") from None
-
 
 def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra_sinks=(), resume_hint: str = ""):
     """Run `evaluate` with a progress bar, log sinks and clear errors; (results, results path, log paths)."""
     from mewa_bench.logs.files import make_log_sinks, parse_log_kinds
-    from mewa_bench.protocol.runner import EvaluationError, default_results_path, evaluate
+    from mewa_bench.protocol.config import default_results_path
+    from mewa_bench.protocol.runner import EvaluationError, evaluate
     from mewa_bench.design.suites import load_suite
 
     try:
         kinds = parse_log_kinds(log)
         stem = (config.out or default_results_path(config, load_suite(config.suite))).stem
         sinks = [*make_log_sinks(kinds, log_dir, stem), *extra_sinks]
-    except ValueError as e:
+    except (ValueError, OSError) as e:  # bad --log, or a --log-dir that cannot be created
         console.print(f"[red]error:[/red] {e}")
         raise typer.Exit(1) from None
     with Progress(SpinnerColumn(), TextColumn("[progress.description]{task.description}"), BarColumn(),
@@ -134,6 +122,10 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
         except ValueError as e:  # bad suite, results file or option
             bar.stop()
             console.print(f"[red]error:[/red] {e}")
+            raise typer.Exit(1) from None
+        except (RuntimeError, OSError) as e:  # a log/dataset sink failed, or a file could not be written
+            bar.stop()
+            console.print(f"[red]error:[/red] {type(e).__name__}: {e}")
             raise typer.Exit(1) from None
     return results, path, [s.path for s in sinks if hasattr(s, "path")]
 
@@ -160,22 +152,18 @@ def record(
 ) -> None:
     """Roll out a baseline policy or an agent under the evaluation protocol and record a LeRobot dataset."""
     from mewa_bench.datasets.lerobot_recorder import LeRobotSink
-    from mewa_bench.protocol import policy_agent
-    from mewa_bench.protocol.runner import EvalConfig
+    from mewa_bench.protocol.config import rollout_config
 
     if out.exists():
         console.print(f"[red]error:[/red] {out} already exists (LeRobot creates the dataset folder itself)")
         raise typer.Exit(1)
-    is_file = policy.endswith(".py")
-    if not is_file:
-        _check_policy_name(policy)
-    args = _parse_agent_args(agent_arg)
-    config = EvalConfig(
-        agent_path=Path(policy) if is_file else policy_agent.AGENT_FILE, suite=suite, seeds=_parse_seeds(seeds),
-        out=results or out.with_name(out.name + ".results.json"), name=Path(policy).stem if is_file else policy,
-        agent_args=args if is_file else {"policy": policy, **args}, isolated=is_file,
-        privileged=privileged or not is_file, jobs=jobs, pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
-        **_mode_options(mode, image_size))
+    try:
+        config = rollout_config(policy, _parse_agent_args(agent_arg), privileged, suite=suite, seeds=_parse_seeds(seeds),
+                                out=results or out.with_name(out.name + ".results.json"), jobs=jobs,
+                                pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
+                                **_mode_options(mode, image_size))
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--policy") from None
     sink = LeRobotSink(out, repo_id or f"mewa/{out.name}", fps=fps, video=video)
     results_data, path, logs = _run_with_progress(config, log, log_dir, f"recording {policy} on {suite}", [sink])
     console.print(f"dataset: [bold]{out}[/bold] ({sink.frames:,} frames, {len(results_data['units']) * config.episodes} "
@@ -291,7 +279,8 @@ def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wi
              check: bool = typer.Option(False, help="Also compare the result byte for byte with the shipped suite.")) -> None:
     """Regenerate a suite from the paper's task-design method (exact; reproduces the shipped file byte for byte)."""
     from mewa_bench.design.generate import SPECS, generate_suite
-    from mewa_bench.design.suites import shipped_path, suite_text, write_atomic
+    from mewa_bench.design.suites import shipped_path, suite_text
+    from mewa_bench.files import write_atomic
 
     if kind not in SPECS:
         raise typer.BadParameter(f"expected one of {', '.join(SPECS)}", param_hint="KIND")
@@ -326,7 +315,7 @@ def suites_list() -> None:
 def suites_show(name: str = typer.Argument(..., help="Suite name or path.")) -> None:
     """Tasks, curated workers and baselines of a suite."""
     from mewa_bench.design.suites import load_suite
-    from mewa_bench.suite_tables import pair_table, summary_table, task_table
+    from mewa_bench.cli.suite_tables import pair_table, summary_table, task_table
 
     suite = _or_exit(load_suite, name)
     console.print(f"[bold]{suite.name}[/bold]  sha256 {suite.sha256}")
@@ -423,15 +412,12 @@ def datasets_pack(dataset: Path = typer.Argument(..., help="A recorded dataset f
                   catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
     """Archive a dataset deterministically and add its entry (size, sha256, counts, URL) to the catalog."""
     from mewa_bench.datasets.catalog import add_to_catalog, default_catalog_path
-    from mewa_bench.datasets.pack import pack_dataset
+    from mewa_bench.datasets.pack import archive_name, pack_dataset
 
     catalog_path = catalog or default_catalog_path()
-    entry = _or_exit(lambda: pack_dataset(dataset, out, name, version, suite, policy, url_base))
-    archive = out / f"{name}-{version}.tar.gz"
-    if url_base is None and archive.resolve().parent == catalog_path.resolve().parent:
-        entry["url"] = archive.name
+    entry = _or_exit(lambda: pack_dataset(dataset, out, name, version, suite, policy, url_base, catalog_path.parent))
     _or_exit(lambda: add_to_catalog(catalog_path, entry))
-    console.print(f"wrote {archive} ({entry['size']:,} bytes, sha256 {entry['sha256'][:16]}…); catalog {catalog_path}")
+    console.print(f"wrote {out / archive_name(name, version)} ({entry['size']:,} bytes, sha256 {entry['sha256'][:16]}…); catalog {catalog_path}")
 
 
 def _or_exit(call, *args):
