@@ -18,7 +18,7 @@ import gymnasium as gym
 import numpy as np
 
 import mewa_bench  # noqa: F401
-from mewa_bench.envs import MewaEnv, MewaVectorEnv
+from mewa_bench.envs import MetaEpisodeVectorEnv, MewaEnv, MewaVectorEnv
 from mewa_bench.game import Task, observation, outcomes
 from mewa_bench.game.rules import initial_state, is_terminal, step_reward
 
@@ -64,8 +64,8 @@ def time_scalar(env, seconds: float, reset) -> float:
     return n / (time.perf_counter() - start)
 
 
-def time_batched(num_envs: int, seconds: float) -> float:
-    env = MewaVectorEnv(num_envs=num_envs, task=TASK, worker=WORKER)
+def time_batched(num_envs: int, seconds: float, env: MewaVectorEnv | None = None) -> float:
+    env = env or MewaVectorEnv(num_envs=num_envs, task=TASK, worker=WORKER)
     env.reset(seed=0)
     actions = np.random.default_rng(0).integers(0, 4, size=(64, num_envs))
     n, start = 0, time.perf_counter()
@@ -93,6 +93,18 @@ def main() -> None:
     print(f"{'configuration':<52} {'steps/s':>14} {'x baseline':>11}")
     for name, rate in rows:
         print(f"{name:<52} {rate:>14,.0f} {rate / base:>10.1f}x")
+    # Meta-training (issue 12: within 1.5x of the fixed worker): workers sampled from the meta-train
+    # distribution at every reset, and meta-episodes of 10 episodes per pair.
+    n = 4096
+    fixed = time_batched(n, args.seconds)
+    meta_rows = [(f"MewaVectorEnv, {n} pairs, fixed worker (baseline)", fixed),
+                 (f"MewaVectorEnv, {n} pairs, worker sampled per reset",
+                  time_batched(n, args.seconds, MewaVectorEnv(num_envs=n, task=TASK))),
+                 (f"MetaEpisodeVectorEnv, {n} pairs, 10 episodes per pair",
+                  time_batched(n, args.seconds, MetaEpisodeVectorEnv(num_envs=n, task=TASK)))]
+    print(f"\n{'meta-training configuration':<52} {'steps/s':>14} {'slowdown':>11}")
+    for name, rate in meta_rows:
+        print(f"{name:<52} {rate:>14,.0f} {fixed / rate:>10.2f}x")
 
 
 if __name__ == "__main__":

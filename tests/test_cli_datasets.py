@@ -37,9 +37,11 @@ def test_shipped_catalog_archives_match_their_entries() -> None:
         data = archive.read_bytes()
         assert len(data) == entry["size"] and hashlib.sha256(data).hexdigest() == entry["sha256"]
         assert entry["suite_sha256"] == load_suite(entry["suite"]).sha256
+        # recorded by the code as it is now: a baseline policy by the policy agent, else the submission's agent.py
+        baseline = REPO / "mewa_bench" / "protocol" / "policy_agent.py"
         agent = REPO / "submissions" / entry["policy"] / "agent.py"
-        if agent.exists():  # recorded by the shipped agent file as it is now
-            assert entry["policy_sha256"] == hashlib.sha256(agent.read_bytes()).hexdigest(), entry["name"]
+        current = {hashlib.sha256(path.read_bytes()).hexdigest() for path in (baseline, agent) if path.exists()}
+        assert entry["policy_sha256"] in current, f"{entry['name']}: re-record it with this version"
         with tarfile.open(fileobj=io.BytesIO(data)) as tar:
             meta_file = next(m for m in tar.getmembers() if m.name.endswith("meta/mewa.json"))
             meta = json.loads(tar.extractfile(meta_file).read())
@@ -86,6 +88,13 @@ def test_record_pack_download_round_trip(tmp_path: Path) -> None:
     assert ds.num_episodes == 20 and ds.num_frames == frames
     again = runner.invoke(app, ["record", "--policy", "max-expected", "--out", str(out)])
     assert again.exit_code == 1 and "already exists" in " ".join(again.output.split())
+    broken = tmp_path / "broken" / "index.json"
+    broken.parent.mkdir()
+    broken.write_text("{not json")
+    refused = runner.invoke(app, ["datasets", "pack", str(out), "--name", "rec", "--suite", "narrow-v1", "--policy",
+                                  "max-expected", "--out", str(broken.parent), "--catalog", str(broken)])
+    assert refused.exit_code == 1 and "error" in refused.output
+    assert list(broken.parent.iterdir()) == [broken]  # no archive written beside a catalog that cannot take it
 
 
 def test_adding_to_a_catalog_keeps_relative_urls(tmp_path: Path) -> None:
@@ -120,3 +129,18 @@ def test_a_log_dir_that_cannot_be_created_is_a_clear_error(tmp_path: Path) -> No
     assert result.exit_code == 1 and isinstance(result.exception, SystemExit)  # a message, not a traceback
     assert "error:" in result.output and "Not a directory" in result.output
     assert not (tmp_path / "r.json").exists()
+
+
+def test_recording_twice_gives_the_same_bytes(tmp_path: Path) -> None:
+    from mewa_bench.datasets.pack import pack_dataset
+
+    entries = []
+    for run in ("a", "b"):
+        out = tmp_path / run / "ds"  # the same folder name: the default repo id follows it
+        result = runner.invoke(app, ["record", "--policy", "random-task-specific", "--pairs", "0,1", "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        entries.append(pack_dataset(out, tmp_path / run / "packed", "same", "1", "narrow-v1", "random-task-specific"))
+    files = sorted(p.relative_to(tmp_path / "a" / "ds") for p in (tmp_path / "a" / "ds").rglob("*") if p.is_file())
+    for name in files:
+        assert (tmp_path / "a" / "ds" / name).read_bytes() == (tmp_path / "b" / "ds" / name).read_bytes(), name
+    assert entries[0]["sha256"] == entries[1]["sha256"]

@@ -181,9 +181,11 @@ def test_meta_episode_wrapper(canonical_task: Task) -> None:
         assert obs[18 + a] == 1.0 and obs[22] == np.float32(r)
         if info["inner_done"]:
             inner_ends += 1
-            assert obs[23] == 1.0
+            assert obs[23] == (1.0 if inner_ends < 3 else 0.0)  # no new episode after the last one
             if inner_ends < 3:  # next inner episode starts from the initial state
                 np.testing.assert_array_equal(obs[:18], env.unwrapped._fast.obs[0])
+        else:
+            assert obs[23] == 0.0
         done = term or trunc
     assert inner_ends == 3 and info["episode_in_trial"] == 2
     env.reset()

@@ -14,7 +14,8 @@ import pytest
 from mewa_bench.design.suites import load_suite
 from mewa_bench.envs.mewa_env import MewaEnv
 from mewa_bench.protocol.agent import Transition
-from mewa_bench.protocol.runner import EvalConfig, evaluate
+from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.runner import evaluate
 
 AGENT_PATH = Path(__file__).resolve().parents[1] / "submissions" / "bayes-explorer" / "agent.py"
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 from pathlib import Path
 
@@ -27,6 +28,18 @@ def narrow() -> Suite:
     return load_suite("narrow-v1")
 
 
+def agent_text(name: str, seed: int) -> str:
+    """The agent.py of a synthetic submission (its sha256 goes into the results)."""
+    return f"# synthetic agent {name}, seed {seed}\n"
+
+
+def write_submission(folder: Path, name: str, seed: int) -> None:
+    """A submission folder's agent.py and README.md."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "agent.py").write_text(agent_text(name, seed))
+    (folder / "README.md").write_text(f"# {name}\n")
+
+
 def make_results(suite: Suite, name: str, start: float, gain: float, privileged: bool = False,
                  seed: int = 0) -> dict:
     """A complete results dict in the schema of protocol/results.py, scores computed as the runner does."""
@@ -42,7 +55,8 @@ def make_results(suite: Suite, name: str, start: float, gain: float, privileged:
     scores = score_units(suite, units, suite.summary["score"]["random_task_specific"])
     return {
         "schema_version": SCHEMA_VERSION, "protocol_version": PROTOCOL_VERSION, "complete": True,
-        "agent": {"name": name, "file": f"submissions/{name}/agent.py", "sha256": f"{seed:02d}" + "ab" * 31,
+        "agent": {"name": name, "file": f"submissions/{name}/agent.py",
+                  "sha256": hashlib.sha256(agent_text(name, seed).encode()).hexdigest(),
                   "privileged": privileged, "agent_args": {}, "checkpoint": None},
         "suite": {"name": suite.name, "version": suite.content["version"], "sha256": suite.sha256},
         "env": {"id": suite.content["env_id"], "version": "v0", "mode": "vector"},
@@ -81,9 +95,11 @@ def built(narrow: Suite, tmp_path_factory: pytest.TempPathFactory) -> tuple[Lead
     root = tmp_path_factory.mktemp("lb")
     subs = root / "submissions"
     for i, (name, (start, gain, privileged)) in enumerate(AGENTS.items()):
+        write_submission(subs / name, name, i)
         write_results(subs / name / f"results-{name}-narrow-v1.json", make_results(narrow, name, start, gain,
                                                                                     privileged, seed=i))
     (subs / "steady" / "notes.json").write_text('{"not": "a results file"}')  # ignored: no schema_version
+    write_submission(subs / "bad", "bad", 9)
     for file, (content, _) in invalid_variants(narrow).items():
         path = subs / "bad" / file
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -179,6 +195,7 @@ def test_invalid_files_reported_and_skipped(built, narrow: Suite) -> None:
 def test_tampered_curve_point_is_rejected(narrow: Suite, tmp_path: Path) -> None:
     results = make_results(narrow, "sneaky", 0.8, 0.0)
     results["scores"]["curve"][-1]["mean"] += 0.05  # a better s_10 than its units show
+    write_submission(tmp_path / "subs" / "sneaky", "sneaky", 0)
     write_results(tmp_path / "subs" / "sneaky" / "results-x.json", results)
     report = build_leaderboards(tmp_path / "subs", tmp_path / "out")
     assert report.entries["narrow-v1"] == ()
@@ -207,8 +224,6 @@ def test_committed_leaderboards_are_up_to_date_with_the_submissions(tmp_path: Pa
 
 
 def test_submitted_results_were_produced_by_the_shipped_agent_files() -> None:
-    import hashlib
-
     repo = Path(__file__).resolve().parents[1]
     for results_file in sorted((repo / "submissions").glob("*/results-*.json")):
         recorded = json.loads(results_file.read_text())["agent"]["sha256"]
@@ -228,3 +243,32 @@ def test_a_changed_agent_file_invalidates_its_results(tmp_path: Path) -> None:
     assert len(results) == 4
     assert sorted(path for path, _ in report.invalid) == results
     assert all("re-run the evaluation" in why for _, why in report.invalid)
+
+
+def test_a_submission_needs_its_agent_and_readme_and_is_ranked_once(narrow: Suite, tmp_path: Path) -> None:
+    subs = tmp_path / "subs"
+    results = make_results(narrow, "alone", 0.8, 0.0, seed=4)
+    write_results(subs / "alone" / "results-narrow-v1.json", results)  # no agent.py, no README.md
+    write_submission(subs / "first", "alone", 4)  # the same agent file submitted twice
+    write_results(subs / "first" / "results-narrow-v1.json", results)
+    write_submission(subs / "second", "alone", 4)
+    write_results(subs / "second" / "results-narrow-v1.json", results)
+    report = build_leaderboards(subs, tmp_path / "out")
+    assert [e.path.parent.name for e in report.entries["narrow-v1"]] == ["first"]
+    reasons = {path.parent.name: why for path, why in report.invalid}
+    assert "no agent.py and no README.md" in reasons["alone"]
+    assert "already on the narrow-v1 board as first" in reasons["second"]
+
+
+def test_the_leaderboard_command_fails_when_it_skipped_a_file(narrow: Suite, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    subs = tmp_path / "subs"
+    write_results(subs / "alone" / "results-narrow-v1.json", make_results(narrow, "alone", 0.8, 0.0))
+    args = ["leaderboard", "--submissions", str(subs), "--out", str(tmp_path / "out")]
+    strict = CliRunner().invoke(app, args)
+    assert strict.exit_code == 1 and "skipped" in strict.output
+    assert (tmp_path / "out" / "narrow-v1.md").exists()  # the boards are written either way
+    assert CliRunner().invoke(app, [*args, "--no-strict"]).exit_code == 0

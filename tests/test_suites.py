@@ -128,3 +128,15 @@ def test_design_report_is_generated_from_the_suites(tmp_path: Path) -> None:
     # The shipped report is up to date with the shipped suites.
     shipped = Path(__file__).resolve().parents[1] / "docs" / "suites.md"
     assert shipped.read_text() == text
+
+
+def test_generate_check_compares_without_writing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["generate", "narrow", "--check"])
+    assert result.exit_code == 0, result.output
+    assert "byte-identical to the shipped narrow-v1.json: yes" in " ".join(result.output.split())
+    assert list(tmp_path.iterdir()) == []  # --check alone writes nothing

@@ -47,7 +47,7 @@ DEFAULT_SEED_COUNT = 50  # = len(protocol.runner.DEFAULT_SEEDS), kept here so --
 @app.command()
 def evaluate(
     agent: Path = typer.Argument(..., help="Your agent: a .py file with make_agent(observation_space, action_space) or class Agent."),
-    suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1) or path."),
+    suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1: the paper's; narrow-v2, wide-v2: recommended for adaptation) or path."),
     seeds: str = typer.Option(str(DEFAULT_SEED_COUNT), help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; "
                               "ranked runs use the protocol's default."),
     out: Path = typer.Option(None, help="Results file (default: results/<agent>-<suite>.json)."),
@@ -127,7 +127,7 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
             bar.stop()
             console.print(f"[red]error:[/red] {type(e).__name__}: {e}")
             raise typer.Exit(1) from None
-    return results, path, [s.path for s in sinks if hasattr(s, "path")]
+    return results, path, [s.path for s in sinks if hasattr(s, "path") and s.path.exists()]
 
 
 @app.command()
@@ -196,7 +196,9 @@ def view(file: Path = typer.Argument(..., help="A Rerun recording (.rrd) written
 
 @app.command()
 def leaderboard(submissions: Path = typer.Option(Path("submissions"), help="Folder of submissions/<name>/ results."),
-                out: Path = typer.Option(Path("leaderboards"), help="Where to write the tables, plots and page.")) -> None:
+                out: Path = typer.Option(Path("leaderboards"), help="Where to write the tables, plots and page."),
+                strict: bool = typer.Option(True, help="Exit with code 1 when a results file was skipped "
+                                                       "(the boards are written either way).")) -> None:
     """Validate every results file in submissions/ and write leaderboards/<suite>.md, .csv, .png and index.html."""
     from mewa_bench.leaderboard import build_leaderboards
 
@@ -209,6 +211,8 @@ def leaderboard(submissions: Path = typer.Option(Path("submissions"), help="Fold
         console.print(f"wrote {path}")
     if report.invalid:
         console.print(f"[yellow]{len(report.invalid)} results file(s) were invalid and skipped[/yellow]")
+        if strict:
+            raise typer.Exit(1)
 
 
 def _mode_options(mode: str, image_size: str) -> dict:
@@ -275,8 +279,9 @@ app.add_typer(suites_app, name="suites")
 
 @app.command()
 def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wide-v2"),
-             out: Path = typer.Option(None, "--out", help="Where to write the suite (default: ./<name>.json)."),
-             check: bool = typer.Option(False, help="Also compare the result byte for byte with the shipped suite.")) -> None:
+             out: Path = typer.Option(None, "--out", help="Where to write the suite (default: ./<name>.json; "
+                                                           "with --check, nothing is written unless --out is given)."),
+             check: bool = typer.Option(False, help="Compare the result byte for byte with the shipped suite.")) -> None:
     """Regenerate a suite from the paper's task-design method (exact; reproduces the shipped file byte for byte)."""
     from mewa_bench.design.generate import SPECS, generate_suite
     from mewa_bench.design.suites import shipped_path, suite_text
@@ -288,9 +293,12 @@ def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wi
     with console.status(f"generating {SPECS[kind].name}") as status:
         content = generate_suite(kind, progress=lambda msg: status.update(msg))
     text = suite_text(content)
-    target = out or Path(f"{SPECS[kind].name}.json")
-    write_atomic(target, text)
-    console.print(f"wrote [bold]{target}[/bold] ({len(text):,} bytes) in {time.perf_counter() - start:.1f} s")
+    if out is not None or not check:
+        target = out or Path(f"{SPECS[kind].name}.json")
+        write_atomic(target, text)
+        console.print(f"wrote [bold]{target}[/bold] ({len(text):,} bytes) in {time.perf_counter() - start:.1f} s")
+    else:
+        console.print(f"generated {SPECS[kind].name} ({len(text):,} bytes) in {time.perf_counter() - start:.1f} s")
     if check:
         shipped = shipped_path(SPECS[kind].name)
         same = shipped.exists() and shipped.read_text() == text
@@ -398,7 +406,7 @@ def datasets_download(source: str = typer.Argument(..., help="Catalog name, arch
                                            progress=lambda done, total: bar.update(task, completed=done, total=total)))
     check = "verified" if result.verified else "[yellow]not verified (no known sha256)[/yellow]"
     console.print(f"[green]ok[/green] {result.name} -> [bold]{result.path}[/bold] ({check})")
-    console.print(f"load it: LeRobotDataset('mewa/{result.name}', root='{result.path}')")
+    console.print(f"load it: LeRobotDataset('mewa/{result.name}', root='{result.path}', video_backend='pyav')")
 
 
 @datasets_app.command("pack")
@@ -411,10 +419,12 @@ def datasets_pack(dataset: Path = typer.Argument(..., help="A recorded dataset f
                                                           "to the catalog when the archive sits beside it)."),
                   catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
     """Archive a dataset deterministically and add its entry (size, sha256, counts, URL) to the catalog."""
-    from mewa_bench.datasets.catalog import add_to_catalog, default_catalog_path
+    from mewa_bench.datasets.catalog import add_to_catalog, default_catalog_path, load_catalog
     from mewa_bench.datasets.pack import archive_name, pack_dataset
 
     catalog_path = catalog or default_catalog_path()
+    if catalog_path.exists():
+        _or_exit(load_catalog, catalog_path)  # a broken catalog fails before any archive is written
     entry = _or_exit(lambda: pack_dataset(dataset, out, name, version, suite, policy, url_base, catalog_path.parent))
     _or_exit(lambda: add_to_catalog(catalog_path, entry))
     console.print(f"wrote {out / archive_name(name, version)} ({entry['size']:,} bytes, sha256 {entry['sha256'][:16]}…); catalog {catalog_path}")

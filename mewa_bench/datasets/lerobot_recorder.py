@@ -204,6 +204,7 @@ class LeRobotSink:
             if self.dataset.has_pending_frames():
                 self.dataset.clear_episode_buffer()
             self.dataset.finalize()
+            _sort_json_keys(self.root / "meta" / "stats.json")
         finally:
             self._write_meta()
             _remove_empty_dirs(self.root / "images")  # lerobot's image staging folder stays behind empty
@@ -336,7 +337,7 @@ class LeRobotSink:
             "workers": [list(w) for w, _ in sorted(self.workers.items(), key=lambda kv: kv[1])],
             "pairs": {str(p): v for p, v in sorted(self.pairs.items())},
             "units": self.units,
-            "frames": self.frames, "record_seconds": round(self.seconds, 3),
+            "frames": self.frames,  # no timings: the same run must give the same bytes
         }
 
     def _write_meta(self) -> None:
@@ -391,3 +392,12 @@ def _remove_empty_dirs(path: Path) -> None:
 def load_metadata(root: Path | str) -> dict[str, Any]:
     """Read a recorded dataset's `meta/mewa.json`."""
     return json.loads((Path(root) / MEWA_META_FILE).read_text())
+
+
+def _sort_json_keys(path: Path) -> None:
+    """Rewrite a JSON file with sorted keys (lerobot writes `stats.json` in an order that varies between
+    runs); same content, same indentation, so the same recording gives the same bytes."""
+    if path.is_file():
+        from mewa_bench.files import write_atomic
+
+        write_atomic(path, json.dumps(json.loads(path.read_text()), indent=4, sort_keys=True))

@@ -16,6 +16,8 @@ from mewa_bench.game.palette import NUM_COLORS, OBS_SIZE
 from mewa_bench.game.table import transition_table
 from mewa_bench.game.task import Task, Worker
 
+PAIR_BATCH = 1024  # meta-train pairs sampled per call of the sampler
+
 
 class StackedTables:
     """The transition tables of several tasks concatenated into one state space (offset per task)."""
@@ -79,6 +81,8 @@ class MewaVectorEnv(VectorEnv):
         self._needs_reset = np.ones(num_envs, dtype=bool)
         self._keys = np.zeros(num_envs, dtype=np.uint64)
         self._draws = np.zeros((num_envs, NUM_COLORS), dtype=np.int64)  # second blocks so far, per colour
+        self._pairs: tuple[np.ndarray, np.ndarray] | None = None  # sampled pairs not handed out yet
+        self._pairs_used = 0
 
     @property
     def tasks(self) -> tuple[Task, ...]:
@@ -100,11 +104,25 @@ class MewaVectorEnv(VectorEnv):
         """Each sub-env's current luck key, uint64 [num_envs] (see `MewaEnv`'s "Worker luck")."""
         return self._keys.copy()
 
-    def _start_episodes(self, rows: np.ndarray) -> None:
-        task_idx, workers = self._source.sample(self.np_random, len(rows))
-        self._task_idx[rows] = task_idx
-        self._workers[rows, :NUM_COLORS] = workers
-        self._state[rows] = self._stack.start[task_idx]
+    def _next_pairs(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The next n pairs from the source, sampled PAIR_BATCH at a time (a few episodes end per step,
+        and the sampler's cost is mostly per call)."""
+        if self._pairs is None or len(self._pairs[0]) - self._pairs_used < n:
+            task_idx, workers = self._source.sample(self.np_random, max(n, PAIR_BATCH))
+            if self._pairs is not None:  # keep the order: what is left first, then the new draws
+                task_idx = np.concatenate([self._pairs[0][self._pairs_used:], task_idx])
+                workers = np.concatenate([self._pairs[1][self._pairs_used:], workers])
+            self._pairs, self._pairs_used = (task_idx, workers), 0
+        start, self._pairs_used = self._pairs_used, self._pairs_used + n
+        return self._pairs[0][start:self._pairs_used], self._pairs[1][start:self._pairs_used]
+
+    def _start_episodes(self, rows: np.ndarray, new_pairs: bool = True) -> None:
+        """Start an episode in `rows`: on a new pair from the source, or on the pair they hold."""
+        if new_pairs:
+            task_idx, workers = self._next_pairs(len(rows))
+            self._task_idx[rows] = task_idx
+            self._workers[rows, :NUM_COLORS] = workers
+        self._state[rows] = self._stack.start[self._task_idx[rows]]
         self._keys[rows] = self.np_random.integers(0, luck.KEY_BOUND, size=len(rows), dtype=np.uint64)
         self._draws[rows] = 0
         self._t[rows] = 0
@@ -117,6 +135,7 @@ class MewaVectorEnv(VectorEnv):
         if seed is not None and not isinstance(seed, (int, np.integer)):
             raise ValueError("the batched env takes one integer seed for all sub-envs")
         super().reset(seed=seed)
+        self._pairs = None  # a seed (or new options) starts the pair sequence afresh
         options = options or {}
         unknown = set(options) - {"task", "worker"}
         if unknown:
@@ -131,27 +150,38 @@ class MewaVectorEnv(VectorEnv):
         self._start_episodes(self._rows)
         return self._stack.obs[self._state], {"progress": np.zeros(self.num_envs, dtype=np.int8)}
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Step every sub-env with its action (int array [num_envs] of colours 0..3)."""
+    def _check_actions(self, actions: np.ndarray) -> np.ndarray:
+        """The actions as an int array [num_envs] of colours 0..3, or a ValueError naming the bad sub-envs."""
         a = np.asarray(actions)
         if a.shape != (self.num_envs,) or a.dtype.kind not in "iu":
             raise ValueError(f"actions must be an int array of shape ({self.num_envs},), got {a.dtype} {a.shape}")
         if a.size and (a.min() < 0 or a.max() >= NUM_COLORS):
             bad = np.flatnonzero((a < 0) | (a >= NUM_COLORS))
             raise ValueError(f"invalid action(s) at sub-env(s) {bad[:5].tolist()}: expected 0..{NUM_COLORS - 1}")
+        return a
+
+    def _advance(self, a: np.ndarray, moving: np.ndarray) -> np.ndarray:
+        """Next state of every sub-env under actions `a` (the rules' table; mistakes drawn from each
+        episode's luck key). Only the `moving` sub-envs use up luck draws."""
         st = self._stack
         flat = self._state * NUM_COLORS + a
         column = st.mistake_column[flat]
-        resetting = self._needs_reset.copy()
         mistake = np.zeros(self.num_envs, dtype=bool)
-        draw = np.flatnonzero((column < NUM_COLORS) & ~resetting)  # second blocks: the luck decides
+        draw = np.flatnonzero((column < NUM_COLORS) & moving)  # second blocks: the luck decides
         if draw.size:
             colour = a[draw]
             j = self._draws[draw, colour]
             self._draws[draw, colour] = j + 1
             u = luck.uniforms(self._keys[draw], colour, j)
             mistake[draw] = u < self._workers[draw, column[draw]]
-        nxt = np.where(mistake, st.next_mistake[flat], st.next_ok[flat])
+        return np.where(mistake, st.next_mistake[flat], st.next_ok[flat])
+
+    def _move(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Apply one step to every sub-env: the action where an episode runs, an autoreset (new pair,
+        reward 0, action ignored) where one ended on the previous step. Returns (reward, resetting)."""
+        a = self._check_actions(actions)
+        resetting = self._needs_reset.copy()
+        nxt = self._advance(a, ~resetting)
         if resetting.any():
             rows = np.flatnonzero(resetting)
             self._start_episodes(rows)
@@ -159,9 +189,16 @@ class MewaVectorEnv(VectorEnv):
             self._t[rows] = -1  # the reset step itself does not count
         self._state = nxt
         self._t += 1
-        reward = st.reward[nxt]
+        reward = self._stack.reward[nxt]
         reward[resetting] = 0.0
         self._return += reward
+        return reward, resetting
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Step every sub-env with its action (int array [num_envs] of colours 0..3)."""
+        st = self._stack
+        reward, resetting = self._move(actions)
+        nxt = self._state
         terminated = st.terminal[nxt] & ~resetting
         truncated = (self._t >= st.horizon[self._task_idx]) & ~terminated
         done = terminated | truncated

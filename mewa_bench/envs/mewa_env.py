@@ -123,6 +123,11 @@ class MewaEnv(gym.Env):
 
     # -- the current pair -------------------------------------------------------------------------
     @property
+    def tasks(self) -> tuple[Task, ...]:
+        """The tasks this env draws from (one when the pair is fixed)."""
+        return self._source.tasks
+
+    @property
     def task(self) -> Task:
         """The task being played (hidden from agents under the evaluation protocol)."""
         return self._task

@@ -152,12 +152,18 @@ def sample_cover_workers(family: WorkerFamily, rng: np.random.Generator, n: int,
 
 
 def _rejection(draw: Any, n: int, what: str) -> np.ndarray:
-    """Fill n rows from a `draw(m) -> accepted rows` function, in draw order."""
-    parts, filled = [], 0
+    """Fill n rows from a `draw(m) -> accepted rows` function, in draw order.
+
+    Each draw is sized by the acceptance rate seen so far, so a low rate costs few calls."""
+    parts, filled, tried, accepted = [], 0, 0, 0
     for _ in range(_MAX_TRIES):
         if filled == n:
             break
-        good = draw(max(2 * (n - filled), 16))[: n - filled]
+        rate = max(accepted / tried, 0.01) if tried else 0.5
+        m = max(int(1.2 * (n - filled) / rate), 16)
+        got = draw(m)
+        tried, accepted = tried + m, accepted + len(got)
+        good = got[: n - filled]
         parts.append(good)
         filled += len(good)
     if filled < n:

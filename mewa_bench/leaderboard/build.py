@@ -41,9 +41,13 @@ def collect(submissions_dir: Path) -> tuple[dict[str, list[Entry]], list[tuple[P
             invalid.append((path, str(e)))
         else:
             twin = next((e for e in entries[entry.suite] if e.path.parent == entry.path.parent), None)
+            clone = next((e for e in entries[entry.suite] if e.agent_sha256 == entry.agent_sha256), None)
             if twin is not None:
                 invalid.append((path, f"{twin.path.name} of the same submission folder is already on the "
                                       f"{entry.suite} board: one row per submission"))
+            elif clone is not None:
+                invalid.append((path, f"the same agent file (sha256 {entry.agent_sha256[:12]}…) is already on the "
+                                      f"{entry.suite} board as {clone.path.parent.name}: one row per agent"))
             else:
                 entries[entry.suite].append(entry)
     return entries, invalid

@@ -10,7 +10,9 @@ from mewa_bench.leaderboard.board import Board, reference_rows
 from mewa_bench.protocol.config import EPISODES_PER_PAIR
 from mewa_bench.reports.figures import save_png
 
-_REFERENCE_GREYS = ("#000000", "#444444", "#777777", "#999999", "#bbbbbb")
+# One (grey, dash pattern) per reference line, so that five lines stay apart in print and on screen.
+_REFERENCE_STYLES = (("#000000", (0, (6, 2))), ("#555555", (0, (1, 1.5))), ("#333333", (0, (6, 2, 1, 2))),
+                     ("#777777", (0, (3, 3))), ("#999999", (0, (6, 2, 1, 2, 1, 2))))
 
 
 def plot_curves(board: Board, path: Path) -> None:
@@ -32,9 +34,9 @@ def plot_curves(board: Board, path: Path) -> None:
         ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=color, ls=":" if entry.privileged else "-",
                 label=label)
         ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=color, alpha=0.2, lw=0)
-    for row, grey in zip(reference_rows(board.suite), _REFERENCE_GREYS):
-        ax.axhline(row.mean, ls="--", lw=1, color=grey, label=f"{row.name} (exact)")
     k = len(board.entries[0].scores.curve) if board.entries else EPISODES_PER_PAIR
+    for row, (grey, dashes) in zip(reference_rows(board.suite), _REFERENCE_STYLES):
+        ax.axhline(row.mean, ls=dashes, lw=1.2, color=grey, label=f"{row.name} (exact)")
     ax.set_xticks(range(1, k + 1))
     ax.set_xlim(0.7, k + 0.3)
     ax.set_xlabel("episode k with the same hidden worker")

@@ -126,14 +126,20 @@ def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
                  package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""))
 
 
+SUBMISSION_FILES = ("agent.py", "README.md")  # besides its results files
+
+
 def _check_agent_file(path: Path, agent: dict[str, Any]) -> None:
-    """The submission's agent.py, when present, must be the file these results were produced by."""
+    """The submission folder holds its agent.py and README.md, and agent.py is the file these results came from."""
+    missing = [name for name in SUBMISSION_FILES if not (path.parent / name).is_file()]
+    if missing:
+        raise InvalidResults(f"the submission folder {path.parent} has no {' and no '.join(missing)}: a submission "
+                             f"holds {', '.join(SUBMISSION_FILES)} and its results files")
     agent_file = path.parent / "agent.py"
-    if agent_file.is_file():
-        actual = hashlib.sha256(agent_file.read_bytes()).hexdigest()
-        if actual != agent.get("sha256"):
-            raise InvalidResults(f"{agent_file} (sha256 {actual[:12]}…) is not the agent these results were produced "
-                                 f"by (sha256 {str(agent.get('sha256'))[:12]}…): re-run the evaluation")
+    actual = hashlib.sha256(agent_file.read_bytes()).hexdigest()
+    if actual != agent.get("sha256"):
+        raise InvalidResults(f"{agent_file} (sha256 {actual[:12]}…) is not the agent these results were produced "
+                             f"by (sha256 {str(agent.get('sha256'))[:12]}…): re-run the evaluation")
 
 
 def _seeds(seeds: Any) -> tuple[int, ...]:

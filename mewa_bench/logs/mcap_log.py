@@ -210,6 +210,8 @@ class McapSink:
         self._writer = Writer(self._file)
         self._writer.start(profile=PROFILE, library=f"mewa-bench {__version__}")
         for topic, schema in CHANNELS.items():
+            if topic == TOPIC_CAMERA and run.mode == "vector":
+                continue  # no images in vector mode: no empty camera channel
             schema_id = self._writer.register_schema(name=schema["title"], encoding="jsonschema",
                                                      data=json.dumps(schema).encode())
             self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",

@@ -248,7 +248,8 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
 
     writers = BackgroundSinks(sinks)
     try:
-        writers.start(run_info(config, suite, results))
+        if todo:  # a finished run resumed plays nothing: no empty log files
+            writers.start(run_info(config, suite, results))
         if config.jobs <= 1 or len(todo) <= config.lanes:
             player = _LanePlayer(config, suite, collect=bool(sinks))
             try:

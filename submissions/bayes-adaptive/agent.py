@@ -42,7 +42,7 @@ from mewa_bench.design.suites import SHIPPED_SUITES
 from mewa_bench.game.rules import state_from_observation
 from mewa_bench.game.task import Task
 from mewa_bench.protocol.agent import Transition, state_vector
-from mewa_bench.protocol.task_inference import TaskBelief, public_tasks
+from mewa_bench.agents.task_inference import TaskBelief, public_tasks
 
 PRIVILEGED = False
 NUM_ACTIONS = 4

@@ -4,7 +4,7 @@ It is told neither the task nor the worker (SPEC section 6). What it knows is pu
 listed in the shipped suite files (`ALL_SUITES`) with their worker distributions, and the
 t-optimal policy family.
 
-- Task: `mewa_bench.protocol.task_inference.TaskBelief` over the public tasks (one per set of
+- Task: `mewa_bench.agents.task_inference.TaskBelief` over the public tasks (one per set of
   rules); it acts for the first candidate left.
 - Prior over the worker: the meta-train distributions that the suite files list for the task's
   rules, each listing weighted equally (v1 and v2 list the same rules for most tasks, and nothing an
@@ -269,7 +269,7 @@ class BayesExplorerAgent:
 
     def __init__(self, suite: str | None = None, seed: int | str = 0, **knobs: Any) -> None:
         from mewa_bench.design.suites import ALL_SUITES
-        from mewa_bench.protocol.task_inference import TaskBelief
+        from mewa_bench.agents.task_inference import TaskBelief
 
         self.suites = suite or ",".join(ALL_SUITES)
         tasks, self.listings = _shared_public(self.suites)

@@ -28,7 +28,7 @@ from mewa_bench.design.policies import RandomTaskSpecific
 from mewa_bench.design.suites import SHIPPED_SUITES
 from mewa_bench.game.rules import state_from_observation
 from mewa_bench.protocol.agent import Transition, state_vector
-from mewa_bench.protocol.task_inference import TaskBelief, public_tasks
+from mewa_bench.agents.task_inference import TaskBelief, public_tasks
 
 PRIVILEGED = False
 NUM_ACTIONS = 4
