@@ -60,7 +60,7 @@ def test_the_floor_check_sees_lazy_imports(tmp_path: Path) -> None:
 
 # Heavy libraries are imported lazily, inside the functions that need them: (code, what it must not load).
 LIGHT = [
-    ("import mewa_bench", ("torch", "lerobot", "sapien", "rerun", "mcap", "scipy")),
+    ("import mewa_bench", ("torch", "lerobot", "sapien", "rerun", "mcap", "scipy", "ray")),
     ("import mewa_bench.datasets, mewa_bench.datasets.pack, mewa_bench.datasets.downloader",
      ("lerobot", "torch", "huggingface_hub", "datasets")),
     ("import mewa_bench.logs", ("mcap", "rerun", "PIL")),

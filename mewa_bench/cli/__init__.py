@@ -42,6 +42,9 @@ def rollout(episodes: int = typer.Option(3, min=1, help="Episodes to play."),
 
 
 DEFAULT_SEED_COUNT = 50  # = len(protocol.runner.DEFAULT_SEEDS), kept here so --help imports nothing heavy
+RAY_HELP = "Run the units as Ray tasks on a local Ray instance (needs the ray extra; --jobs caps its CPUs)."
+RAY_ADDRESS_HELP = ("Run the units as Ray tasks on the Ray cluster at this address (e.g. 10.0.0.5:6379 or auto); "
+                    "nodes need mewa-bench and the agent file at the same path.")
 
 
 @app.command()
@@ -68,6 +71,8 @@ def evaluate(
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files (named after the results file)."),
     mode: str = typer.Option("vector", help="vector (float32[18]) or sapien ({'state', 'image'} rendered by SAPIEN)."),
     image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
+    ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
+    ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
 ) -> None:
     """Score an agent on a frozen suite under the 10-episode adaptation protocol and write a results file."""
     from mewa_bench.protocol.config import EvalConfig
@@ -78,7 +83,7 @@ def evaluate(
         agent_args=_parse_agent_args(agent_arg), checkpoint=checkpoint, isolated=not in_process,
         time_limit=time_limit or None, memory_limit=_parse_bytes(memory_limit), privileged=privileged,
         jobs=jobs, lanes=lanes, resume=resume, overwrite=overwrite,
-        pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
+        pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None, ray=_ray_option(ray, ray_address),
         **_mode_options(mode, image_size))
     results, path, logs = _run_with_progress(config, log, log_dir, f"{agent.name} on {suite}",
                                              resume_hint="re-run the same command with --resume to continue")
@@ -87,6 +92,19 @@ def evaluate(
     for p in logs:
         console.print(f"log: {p}")
 
+
+
+def _ray_option(ray: bool, address: str | None) -> str | None:
+    """EvalConfig.ray from --ray / --ray-address (None: local processes), failing early without Ray."""
+    if not ray and address is None:
+        return None
+    from mewa_bench.protocol.ray_backend import LOCAL, RayUnavailable, import_ray
+
+    try:
+        import_ray()
+    except RayUnavailable as e:
+        raise typer.BadParameter(str(e), param_hint="--ray") from None
+    return address or LOCAL
 
 
 def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra_sinks=(), resume_hint: str = ""):
@@ -149,6 +167,8 @@ def record(
     mode: str = typer.Option("vector", help="vector, or sapien to also record camera images."),
     image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
     video: bool = typer.Option(False, help="Store sapien images as AV1 video (smaller, lossy) instead of PNG."),
+    ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
+    ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
 ) -> None:
     """Roll out a baseline policy or an agent under the evaluation protocol and record a LeRobot dataset."""
     from mewa_bench.datasets.lerobot_recorder import LeRobotSink
@@ -161,7 +181,7 @@ def record(
         config = rollout_config(policy, _parse_agent_args(agent_arg), privileged, suite=suite, seeds=_parse_seeds(seeds),
                                 out=results or out.with_name(out.name + ".results.json"), jobs=jobs,
                                 pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None,
-                                **_mode_options(mode, image_size))
+                                ray=_ray_option(ray, ray_address), **_mode_options(mode, image_size))
     except ValueError as e:
         raise typer.BadParameter(str(e), param_hint="--policy") from None
     sink = LeRobotSink(out, repo_id or f"mewa/{out.name}", fps=fps, video=video)
@@ -281,17 +301,32 @@ app.add_typer(suites_app, name="suites")
 def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wide-v2"),
              out: Path = typer.Option(None, "--out", help="Where to write the suite (default: ./<name>.json; "
                                                            "with --check, nothing is written unless --out is given)."),
-             check: bool = typer.Option(False, help="Compare the result byte for byte with the shipped suite.")) -> None:
+             check: bool = typer.Option(False, help="Compare the result byte for byte with the shipped suite."),
+             ray: bool = typer.Option(False, "--ray", help="Design the candidate tasks as Ray tasks on a local Ray "
+                                                           "instance (wide suites: one task per Ray task)."),
+             ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP)) -> None:
     """Regenerate a suite from the paper's task-design method (exact; reproduces the shipped file byte for byte)."""
+    from contextlib import nullcontext
+
     from mewa_bench.design.generate import SPECS, generate_suite
     from mewa_bench.design.suites import shipped_path, suite_text
     from mewa_bench.files import write_atomic
 
     if kind not in SPECS:
         raise typer.BadParameter(f"expected one of {', '.join(SPECS)}", param_hint="KIND")
+    address = _ray_option(ray, ray_address)
     start = time.perf_counter()
     with console.status(f"generating {SPECS[kind].name}") as status:
-        content = generate_suite(kind, progress=lambda msg: status.update(msg))
+        if address is None:
+            context, map_tasks = nullcontext(), None
+        else:
+            from mewa_bench.protocol.ray_backend import ray_map, session
+
+            context = session(address)
+            map_tasks = lambda design, raws, kind_: ray_map(  # noqa: E731
+                design, raws, kind_, on_done=lambda c: status.update(f"{c.task.name}: designed and curated"))
+        with context:
+            content = _or_exit(lambda: generate_suite(kind, progress=lambda msg: status.update(msg), map_tasks=map_tasks))
     text = suite_text(content)
     if out is not None or not check:
         target = out or Path(f"{SPECS[kind].name}.json")

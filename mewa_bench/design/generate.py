@@ -179,8 +179,50 @@ def curate_task(task: Task, task_index: int, spec: SuiteSpec, progress: Progress
     return info, pairs
 
 
-def generate_suite(kind: str, progress: Progress = lambda msg: None) -> dict[str, Any]:
-    """Build the content of suite `kind` (a key of SPECS: narrow, wide, narrow-v2, wide-v2), without its hash."""
+@dataclass(frozen=True)
+class Candidate:
+    """A sampled task, designed (Eq. 1) and curated: everything the suite needs if it is accepted."""
+
+    raw: Task
+    task: Task
+    design: AverageWorkerDesign
+    info: dict[str, Any]
+    pairs: list[dict]  # their "task" index is set when the candidate is accepted
+    worst: float  # the best single policy's worst ratio (a wide task is rejected at >= ADAPTIVE_RATIO)
+    family_mads: dict[str, float]
+
+
+def design_candidate(raw: Task, kind: str, progress: Progress = lambda msg: None) -> Candidate:
+    """Design and curate one sampled task (independent of every other task: safe to run in parallel)."""
+    spec = SPECS[kind]
+    progress(f"{raw.name}: Eq. 1 average worker and rewards for N={raw.N}, M={raw.M}")
+    task, design = designed(raw, spec.families)
+    info, pairs = curate_task(task, -1, spec, progress)
+    mads = {f.name: round_floats(mad_at(task, np.array(f.centre))) for f in worker_families(task)} if spec.families else {}
+    return Candidate(raw, task, design, info, pairs, non_adaptive_ratio(pairs), mads)
+
+
+def renamed(task: Task, index: int) -> Task:
+    """A wide task named after its place in the suite (the name is all that depends on it)."""
+    name = f"wide-{index:02d}-n{task.N}-k{task.K}-m{task.M}"
+    return task if task.name == name else Task.from_dict({**task.to_dict(), "name": name})
+
+
+MapTasks = Callable[[Callable[..., Candidate], list[Task], str], list[Candidate]]
+
+
+def in_order(design: Callable[..., Candidate], raws: list[Task], kind: str, progress: Progress) -> list[Candidate]:
+    """The default way to design candidates: one after the other, in this process."""
+    return [design(raw, kind, progress) for raw in raws]
+
+
+def generate_suite(kind: str, progress: Progress = lambda msg: None, map_tasks: MapTasks | None = None) -> dict[str, Any]:
+    """Build the content of suite `kind` (a key of SPECS: narrow, wide, narrow-v2, wide-v2), without its hash.
+
+    Candidate tasks are sampled in a fixed order and designed as many at a time as the suite still
+    needs; `map_tasks(design_candidate, raws, kind)` may design them in parallel (e.g. as Ray tasks):
+    the suite is the same bytes either way.
+    """
     if kind not in SPECS:
         raise ValueError(f"unknown suite kind {kind!r}: expected one of {', '.join(SPECS)}")
     spec = SPECS[kind]
@@ -191,24 +233,26 @@ def generate_suite(kind: str, progress: Progress = lambda msg: None) -> dict[str
     samples = 0
     while len(tasks) < spec.n_tasks:
         if spec.kind == "narrow":
-            raw = Task(**CANONICAL, rewards=(-1.0, -0.5, -0.2, -0.1), name="canonical-n4-k5-m3")
-        else:
-            raw = sample_wide_task(rng, len(tasks))
-        samples += 1
-        progress(f"{raw.name}: Eq. 1 average worker and rewards for N={raw.N}, M={raw.M}")
-        task, design = designed(raw, spec.families)
-        info, task_pairs = curate_task(task, len(tasks), spec, progress)
-        worst = non_adaptive_ratio(task_pairs)
-        if spec.kind == "wide" and worst >= ADAPTIVE_RATIO:
-            rejected.append({"sample": samples - 1, "task": {k: v for k, v in raw.to_dict().items() if k != "rewards"},
-                             "best_single_policy_worst_ratio": round_floats(worst)})
-            continue
-        info["best_single_policy_worst_ratio"] = round_floats(worst)
-        tasks.append(task_entry(task, design, mad_at(task, np.array(task.average_worker)), info))
-        if spec.families:
-            tasks[-1]["design"]["family_mad_at_average_worker"] = {
-                f.name: round_floats(mad_at(task, np.array(f.centre))) for f in worker_families(task)}
-        pairs += task_pairs
+            raws = [Task(**CANONICAL, rewards=(-1.0, -0.5, -0.2, -0.1), name="canonical-n4-k5-m3")]
+        else:  # as many as still needed; each named after the place it would take (fixed below)
+            raws = [sample_wide_task(rng, len(tasks)) for _ in range(spec.n_tasks - len(tasks))]
+        designed_ = (map_tasks(design_candidate, raws, kind) if map_tasks is not None
+                     else in_order(design_candidate, raws, kind, progress))
+        for c in designed_:
+            samples += 1
+            index = len(tasks)
+            raw, task = (c.raw, c.task) if spec.kind == "narrow" else (renamed(c.raw, index), renamed(c.task, index))
+            if spec.kind == "wide" and c.worst >= ADAPTIVE_RATIO:
+                rejected.append({"sample": samples - 1, "task": {k: v for k, v in raw.to_dict().items() if k != "rewards"},
+                                 "best_single_policy_worst_ratio": round_floats(c.worst)})
+                continue
+            info = {**c.info, "best_single_policy_worst_ratio": round_floats(c.worst)}
+            tasks.append(task_entry(task, c.design, mad_at(task, np.array(task.average_worker)), info))
+            if spec.families:
+                tasks[-1]["design"]["family_mad_at_average_worker"] = c.family_mads
+            pairs += [{**p, "task": index} for p in c.pairs]
+            if len(tasks) == spec.n_tasks:
+                break
     generator = {
         "command": f"mewa-bench generate {kind}", "generator_version": GENERATOR_VERSION, "seed": spec.seed,
         "n_tasks": spec.n_tasks, "cap": spec.cap, "grid_step": GRID_STEP, "deltas": list(DELTAS),

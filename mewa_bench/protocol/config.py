@@ -43,6 +43,7 @@ class EvalConfig:
     lanes: int = DEFAULT_LANES  # agent objects played side by side per process (one IPC round trip per step for all)
     mode: str = "vector"  # or "sapien": agents observe {"state": float32[18], "image": uint8[H, W, 3]}
     image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE
+    ray: str | None = None  # run units as Ray tasks: "local" (a Ray instance on this machine) or a cluster address
 
 
 def rollout_config(policy: str, agent_args: dict[str, str] | None = None, privileged: bool = False,

@@ -135,7 +135,7 @@ def new_results(config: EvalConfig, suite: Suite) -> dict[str, Any]:
         "package_version": __version__, "seeds": list(config.seeds), "episodes_per_pair": config.episodes,
         "pairs": list(config.pairs) if config.pairs is not None else None,
         "isolation": {"isolated": config.isolated, "time_limit": config.time_limit, "memory_limit": config.memory_limit},
-        "execution": {"jobs": config.jobs, "lanes": config.lanes},
+        "execution": {"jobs": config.jobs, "lanes": config.lanes, "ray": config.ray},
         "units": [],
         "timing": {"started": datetime.now(timezone.utc).isoformat(timespec="seconds"), "units": {}},
         "machine": machine_info(),

@@ -177,8 +177,12 @@ _WORKER_PLAYER: _LanePlayer | None = None
 
 def _worker_play(config: EvalConfig, units: list[tuple[int, int]], collect: bool
                  ) -> list[tuple[dict[str, Any], float, UnitRecord | None]]:
-    """Entry point of a --jobs worker process: play a batch of units, reusing one player per process."""
+    """Entry point of a --jobs worker process or a Ray task: play a batch of units, reusing one player
+    per process while the run's settings stay the same (a Ray worker may serve several runs)."""
     global _WORKER_PLAYER
+    if _WORKER_PLAYER is not None and (_WORKER_PLAYER.config, _WORKER_PLAYER.collect) != (config, collect):
+        _WORKER_PLAYER.close()
+        _WORKER_PLAYER = None
     if _WORKER_PLAYER is None:
         _WORKER_PLAYER = _LanePlayer(config, load_suite(config.suite), collect)
     finished: list[tuple[dict[str, Any], float, UnitRecord | None]] = []
@@ -187,6 +191,15 @@ def _worker_play(config: EvalConfig, units: list[tuple[int, int]], collect: bool
 
 
 Progress = Callable[[int, int], None]
+
+
+def _play_on_ray(config: EvalConfig, todo: list[tuple[int, int]], collect: bool, record: OnUnit) -> None:
+    """The units as Ray tasks of `config.lanes` units each (`protocol.ray_backend`)."""
+    from mewa_bench.protocol import ray_backend
+
+    with ray_backend.session(config.ray, num_cpus=config.jobs if config.jobs > 1 else None):
+        batches = [todo[i:i + config.lanes] for i in range(0, len(todo), config.lanes)]
+        ray_backend.play_batches(config, batches, collect, _worker_play, record, EvaluationError)
 
 
 def run_info(config: EvalConfig, suite: Suite, results: dict[str, Any]) -> RunInfo:
@@ -250,7 +263,9 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
     try:
         if todo:  # a finished run resumed plays nothing: no empty log files
             writers.start(run_info(config, suite, results))
-        if config.jobs <= 1 or len(todo) <= config.lanes:
+        if config.ray is not None and todo:
+            _play_on_ray(config, todo, bool(sinks), record)
+        elif config.jobs <= 1 or len(todo) <= config.lanes:
             player = _LanePlayer(config, suite, collect=bool(sinks))
             try:
                 player.play(todo, record)

@@ -1,0 +1,115 @@
+"""Evaluation units as Ray tasks on a real local Ray instance (127.0.0.1): the same results as a
+local run, a killed worker retried, resume across backends, a clear error for a missing cluster."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import ray
+
+from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.ray_backend import LOCAL, RayUnavailable, connect
+from mewa_bench.protocol.results import read_results, stable_view, write_results
+from mewa_bench.protocol.runner import evaluate
+
+AGENTS = Path(__file__).parent / "agents"
+REPO = Path(__file__).resolve().parents[1]
+RANDOM = REPO / "submissions" / "random" / "agent.py"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_ray():
+    """One local Ray head for the module (evaluate joins it instead of starting its own)."""
+    ray.init(address="local", num_cpus=2, _node_ip_address="127.0.0.1", include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def config(tmp_path: Path, name: str, agent: Path = RANDOM, **kw) -> EvalConfig:
+    """A small run: pairs 0-3, seeds 0-2, 4 units per batch (so several Ray tasks)."""
+    return EvalConfig(agent_path=agent, out=tmp_path / name, seeds=(0, 1, 2), pairs=(0, 1, 2, 3), lanes=4, **kw)
+
+
+def test_a_ray_run_gives_the_local_results(tmp_path: Path) -> None:
+    on_ray, _ = evaluate(config(tmp_path, "ray.json", ray=LOCAL))
+    local, _ = evaluate(config(tmp_path, "local.json", jobs=2))
+    assert stable_view(on_ray) == stable_view(local)
+    assert on_ray["execution"]["ray"] == LOCAL and local["execution"]["ray"] is None
+    assert len(on_ray["units"]) == 12
+
+
+def test_a_killed_worker_is_retried_and_nothing_is_counted_twice(tmp_path: Path) -> None:
+    marker = tmp_path / "killed"
+    agent = AGENTS / "kills_its_worker_once.py"
+    args = {"marker": str(marker)}
+    on_ray, _ = evaluate(config(tmp_path, "ray.json", agent, agent_args=args, ray=LOCAL))
+    assert marker.read_text() == "killed once"  # a worker really died mid-unit
+    local, _ = evaluate(config(tmp_path, "local.json", agent, agent_args=args))
+    assert stable_view(on_ray) == stable_view(local)
+    assert sorted((u["pair"], u["seed"]) for u in on_ray["units"]) == [(p, s) for p in range(4) for s in range(3)]
+
+
+def test_resume_across_backends(tmp_path: Path) -> None:
+    full, path = evaluate(config(tmp_path, "full.json"))
+    interrupted = {k: v for k, v in read_results(path).items() if k not in ("scores", "baselines")}
+    interrupted["units"] = interrupted["units"][:5]
+    interrupted["complete"] = False
+    write_results(tmp_path / "part.json", interrupted)
+    resumed, _ = evaluate(replace(config(tmp_path, "part.json", ray=LOCAL), resume=True))
+    assert stable_view(resumed) == stable_view(full)
+
+
+def test_an_unreachable_cluster_is_a_clear_error_and_writes_nothing(tmp_path: Path) -> None:
+    with pytest.raises(RayUnavailable, match="cannot reach the Ray cluster at 127.0.0.1:1"):
+        connect("127.0.0.1:1", None)
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    out = tmp_path / "r.json"
+    result = CliRunner().invoke(app, ["evaluate", str(RANDOM), "--seeds", "1", "--pairs", "0",
+                                      "--ray-address", "127.0.0.1:1", "--out", str(out)])
+    assert result.exit_code == 1 and "cannot reach the Ray cluster" in " ".join(result.output.split())
+    assert not out.exists()
+
+
+def test_a_worker_dying_beyond_the_retries_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from mewa_bench.protocol import ray_backend
+    from mewa_bench.protocol.runner import EvaluationError
+
+    monkeypatch.setattr(ray_backend, "MAX_RETRIES", 0)
+    run = config(tmp_path, "r.json", AGENTS / "kills_its_worker_once.py", agent_args={"marker": str(tmp_path / "m")},
+                 ray=LOCAL)
+    with pytest.raises(EvaluationError, match="run again with --resume") as err:
+        evaluate(run)
+    assert err.value.kind == "crash"
+    if run.out.exists():  # whatever finished before the failure is kept, whole units only
+        assert all(len(u["returns"]) == 10 for u in read_results(run.out)["units"])
+
+
+def test_record_on_ray_writes_the_same_dataset(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    for where, extra in (("ray", ["--ray"]), ("local", [])):
+        out = tmp_path / where / "ds"
+        result = CliRunner().invoke(app, ["record", "--policy", "random-task-specific", "--pairs", "0,1,2",
+                                          "--seeds", "2", "--out", str(out), *extra])
+        assert result.exit_code == 0, result.output
+    files = sorted(p.relative_to(tmp_path / "local" / "ds") for p in (tmp_path / "local" / "ds").rglob("*") if p.is_file())
+    assert files
+    for name in files:
+        assert (tmp_path / "ray" / "ds" / name).read_bytes() == (tmp_path / "local" / "ds" / name).read_bytes(), name
+
+
+def test_generate_wide_on_ray_reproduces_the_shipped_suite() -> None:
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    result = CliRunner().invoke(app, ["generate", "wide", "--check", "--ray"])
+    assert result.exit_code == 0, result.output
+    assert "byte-identical to the shipped wide-v1.json: yes" in " ".join(result.output.split())
