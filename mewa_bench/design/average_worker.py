@@ -420,30 +420,6 @@ def solve_eq1(N: int, M: int, delta: float, epsilon: float) -> Eq1Solution:
     )
 
 
-def power_of_ten_exponent(r0: float) -> int:
-    """Exponent k such that -1 <= r0 * 10**k < -0.1 (r0 < 0)."""
-    if not r0 < 0 or not math.isfinite(r0):
-        raise ValueError(f"r_0 must be negative and finite, got {r0}")
-    k = -math.ceil(math.log10(-r0))
-    # log10 can be off by an ulp at exact powers of ten: nudge k until the rule holds.
-    while scale_by_power_of_ten(r0, k) < -1.0:
-        k -= 1
-    while scale_by_power_of_ten(r0, k) >= -0.1:
-        k += 1
-    return k
-
-
-def scale_by_power_of_ten(value: float, k: int) -> float:
-    """value * 10**k, dividing for negative k so exact decimals stay exact."""
-    return value * 10.0**k if k >= 0 else value / 10.0 ** (-k)
-
-
-def scale_rewards(r: tuple[float, ...] | np.ndarray) -> tuple[float, ...]:
-    """Scale r by a power of ten so that -1 <= r_0 < -0.1, rounded to DECIMALS."""
-    k = power_of_ten_exponent(float(r[0]))
-    return tuple(round(scale_by_power_of_ten(float(v), k), DECIMALS) for v in r)
-
-
 def mad_key(mad: float) -> float:
     """Comparison key of a MAD: rounded to 12 decimals (as in curation); NaN never wins."""
     return math.inf if math.isnan(mad) else round(mad, DECIMALS)
@@ -471,7 +447,7 @@ def design_average_worker(
                 skipped.append((delta, epsilon))
                 continue
             sol = solve_eq1(N, M, delta, epsilon)
-            r = scale_rewards(sol.r)
+            r = sol.r  # r_0 = -1 by construction: SPEC section 4's rule -1 <= r_0 < -0.1 holds without rescaling
             w_arr, r_arr = np.array(sol.w), np.array(r)
             objective = round_sig(eq1_objective(w_arr, r_arr, M))
             mad = round_sig(float(mad_of(w_arr, r_arr)))

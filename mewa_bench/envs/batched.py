@@ -45,7 +45,7 @@ class MewaVectorEnv(VectorEnv):
     """`num_envs` MEWA games stepped together; same rules and arguments as `MewaEnv`.
 
     Each sub-env plays its own (task, worker) pair: the fixed pair, or a task and a meta-train
-    worker sampled at each of its resets. Sub-envs reset themselves on the step *after* their
+    worker sampled at each of its resets (`workers=[...]`: one of these, drawn uniformly). Sub-envs reset themselves on the step *after* their
     episode ended (`AutoresetMode.NEXT_STEP`, Gymnasium's default): that step ignores the action
     and returns the first observation of the new episode with reward 0.
 
@@ -59,14 +59,14 @@ class MewaVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 1, task: Task | dict | None = None, worker: Sequence[float] | None = None,
                  tasks: Sequence[Task | dict] | None = None, include_centre: bool = False,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, workers: Sequence[Sequence[float]] | None = None) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         if render_mode is not None:
             raise ValueError("the batched env does not render; use MewaEnv for render modes")
         self.num_envs = num_envs
         self.render_mode = None
-        self._source = PairSource.build(task, worker, tasks, include_centre)
+        self._source = PairSource.build(task, worker, tasks, include_centre, workers)
         self._stack = StackedTables(self._source.tasks)
         self.single_action_space = spaces.Discrete(NUM_COLORS)
         self.single_observation_space = spaces.Box(0.0, 255.0, shape=(OBS_SIZE,), dtype=np.float32)

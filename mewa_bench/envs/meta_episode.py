@@ -114,10 +114,11 @@ class MetaEpisodeVectorEnv(MewaVectorEnv):
 
     def __init__(self, num_envs: int = 1, episodes: int = 10, task: Task | dict | None = None,
                  worker: Sequence[float] | None = None, tasks: Sequence[Task | dict] | None = None,
-                 include_centre: bool = False, render_mode: str | None = None) -> None:
+                 include_centre: bool = False, render_mode: str | None = None,
+                 workers: Sequence[Sequence[float]] | None = None) -> None:
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
-        super().__init__(num_envs, task, worker, tasks, include_centre, render_mode)
+        super().__init__(num_envs, task, worker, tasks, include_centre, render_mode, workers)
         self.episodes = episodes
         self.single_observation_space = meta_observation_space(self.tasks)
         self.observation_space = batch_space(self.single_observation_space, num_envs)

@@ -42,11 +42,23 @@ class PairSource:
     tasks: tuple[Task, ...]
     worker: Worker | None = None
     include_centre: bool = False
+    worker_set: tuple[Worker, ...] = ()  # if given: each pair's worker drawn uniformly from these
 
     @classmethod
     def build(cls, task: Task | dict | None, worker: Sequence[float] | Worker | None,
-              tasks: Sequence[Task | dict] | None, include_centre: bool = False) -> "PairSource":
+              tasks: Sequence[Task | dict] | None, include_centre: bool = False,
+              workers: Sequence[Sequence[float]] | None = None) -> "PairSource":
         """Validate the env's construction arguments and build the source."""
+        if workers is not None:
+            if worker is not None or task is None:
+                raise ValueError("`workers` (a set to draw from) needs one `task` and no fixed `worker`")
+            worker_set = tuple(Worker.of(w) for w in workers)
+            if not worker_set:
+                raise ValueError("`workers` is empty")
+            source = cls((as_task(task),), None, include_centre, worker_set)
+            for w in worker_set:
+                w.check_fits(source.tasks[0])
+            return source
         if task is not None and tasks is not None:
             raise ValueError("give either `task` or `tasks`, not both")
         if tasks is not None:
@@ -82,6 +94,10 @@ class PairSource:
         else:
             task_idx = rng.integers(0, len(self.tasks), size=n)
         workers = np.zeros((n, NUM_COLORS))
+        if self.worker_set:
+            chosen = np.array([w.w for w in self.worker_set])[rng.integers(0, len(self.worker_set), size=n)]
+            workers[:, : chosen.shape[1]] = chosen
+            return task_idx, workers
         if self.worker is not None:
             workers[:, : len(self.worker.w)] = self.worker.w
             return task_idx, workers

@@ -1,0 +1,386 @@
+"""RL^2 (Duan et al. 2016, Wang et al. 2016) on MEWA: a recurrent policy trained with PPO on meta-episodes.
+
+One file, top to bottom (in the spirit of CleanRL): settings, the network, rollouts on the batched
+meta-episode env, the PPO update, checkpoints, and `RL2Agent`, which plays a checkpoint under the
+evaluation protocol.
+
+- Inputs: `mewa/MEWA-Meta-v0`'s 24 floats (the observation, the previous action one-hot, the
+  previous reward, the new-episode flag); the GRU's hidden state is carried across the 10 episodes
+  of a pair and reset when a new pair begins, so whatever the policy learns about the worker it
+  learns in context.
+- Pairs: each meta-episode draws a task of the suite and a meta-train worker from the task's own
+  distribution (never a curated test worker), or one of `workers` when given.
+- Autoresets: the batched env ends a meta-episode and starts the next on the following step, which
+  ignores the action (`AutoresetMode.NEXT_STEP`); those steps are masked out of the loss, and the
+  hidden state is zero on the first observation of every meta-episode, as when the agent is scored.
+- Deterministic for a given seed on one machine (torch's CPU kernels, one thread).
+
+- What it learns from: each inner episode's normalised return, paid when the episode ends
+  (`learning_signal`; the raw step rewards are still in the observation). Discounted raw rewards,
+  which are most negative right after a new episode starts, taught it to stall before the last
+  sub-goal (0.745 with a mistake-free worker, against 0.907 for random play).
+
+Status (issue 12, in progress): `mewa-bench train rl2` runs it; on the issue's two-worker task
+((0,1,1,1): greedy building is perfect; (1,1,1,0): only parallel building finishes) 4 M steps
+(~2 min on one core, ~32k steps/s) give adaptability +0.16 [0.14, 0.18] and +0.14 over the best
+fixed policy (tests/test_rl2.py). No checkpoint trained on the shipped suites is shipped yet.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
+CHECKPOINT = "checkpoint.pt"
+METRICS = "metrics.csv"
+
+
+@dataclass
+class Settings:
+    """Everything a run depends on (saved in the checkpoint)."""
+
+    suite: str = "narrow-v1"
+    seed: int = 1
+    total_steps: int = 2_000_000
+    num_envs: int = 64
+    num_steps: int = 128  # rollout length per env and update (truncated backpropagation through time)
+    episodes: int = 10  # inner episodes per pair
+    hidden: int = 128
+    learning_rate: float = 1e-3
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    update_epochs: int = 4
+    num_minibatches: int = 4
+    clip_coef: float = 0.2
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    reward_scale: float = 0.1  # with step_rewards
+    step_rewards: bool = False  # learn from the env's step rewards instead of episode normalised returns
+    checkpoint_every: int = 20  # updates
+    workers: list[list[float]] = field(default_factory=list)  # empty: the suite's meta-train distribution
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.num_steps
+
+
+def make_policy(hidden: int) -> Any:
+    """The network: encoder, GRU, actor and critic heads."""
+    import torch
+    from torch import nn
+
+    class RL2Policy(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.encoder = nn.Sequential(nn.Linear(24, hidden), nn.Tanh())
+            self.gru = nn.GRUCell(hidden, hidden)
+            self.actor = nn.Linear(hidden, 4)
+            self.critic = nn.Linear(hidden, 1)
+
+        def step(self, obs: torch.Tensor, h: torch.Tensor, reset: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            """One step for a batch: logits [B, 4], value [B], next hidden [B, H] (h zeroed where `reset`)."""
+            h = h * (~reset).unsqueeze(1)
+            h = self.gru(self.encoder(scaled(obs)), h)
+            return self.actor(h), self.critic(h).squeeze(1), h
+
+    def scaled(obs: Any) -> Any:
+        return torch.cat([obs[:, :18] / OBS_SCALE, obs[:, 18:]], dim=1)
+
+    return RL2Policy()
+
+
+def make_env(settings: Settings) -> Any:
+    """The batched meta-episode env of a run."""
+    from mewa_bench.design.suites import load_suite
+    from mewa_bench.envs.meta_episode import MetaEpisodeVectorEnv
+
+    tasks = load_suite(settings.suite).tasks
+    if settings.workers:
+        return MetaEpisodeVectorEnv(settings.num_envs, settings.episodes, task=tasks[0], workers=settings.workers)
+    return MetaEpisodeVectorEnv(settings.num_envs, settings.episodes, tasks=tasks)
+
+
+def train(settings: Settings, out: Path, resume: bool = False,
+          progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
+    """Train (or resume) a run in `out`: checkpoints and metrics written as they come; the checkpoint path.
+
+    A resumed run restarts its rollouts from the checkpoint's update (fresh env states and random
+    streams derived from the seed and that update): deterministic, but not the bytes of an
+    uninterrupted run."""
+    import torch
+
+    torch.set_num_threads(1)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(settings.seed)
+    policy = make_policy(settings.hidden)
+    optimizer = torch.optim.Adam(policy.parameters(), lr=settings.learning_rate, eps=1e-5)
+    start_update = 0
+    if resume and (out / CHECKPOINT).exists():
+        state = torch.load(out / CHECKPOINT, weights_only=False)
+        # the run's own settings; only its length may change (to train on from a finished run)
+        settings = Settings(**{**state["settings"], "total_steps": settings.total_steps})
+        policy.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        start_update = state["update"]
+        keep_metrics_until(out / METRICS, start_update)  # rows written after the checkpoint will be redone
+    generator = torch.Generator().manual_seed(settings.seed * 1_000_003 + start_update)
+    env = make_env(settings)
+    obs_np, _ = env.reset(seed=settings.seed + start_update)
+    n, t_len = settings.num_envs, settings.num_steps
+    obs = torch.as_tensor(obs_np)
+    h = torch.zeros(n, settings.hidden)
+    reset = torch.ones(n, dtype=torch.bool)  # the first observation of a meta-episode (or an autoreset step)
+    dummy = torch.zeros(n, dtype=torch.bool)  # this step is an autoreset step: its action is ignored
+    updates = settings.total_steps // settings.steps_per_update
+    for update in range(start_update, updates):
+        began = time.perf_counter()
+        buf = {k: torch.zeros(t_len, n) for k in ("actions", "logprobs", "values", "rewards", "dones")}
+        buf_obs = torch.zeros(t_len, n, 24)
+        buf_reset = torch.zeros(t_len, n, dtype=torch.bool)
+        buf_valid = torch.zeros(t_len, n, dtype=torch.bool)
+        h0 = h.clone()
+        first_scores: list[float] = []
+        last_scores: list[float] = []
+        for t in range(t_len):
+            buf_obs[t], buf_reset[t], buf_valid[t] = obs, reset, ~dummy
+            with torch.no_grad():
+                logits, value, h = policy.step(obs, h, reset)
+                dist = torch.distributions.Categorical(logits=logits)
+                action = torch.multinomial(dist.probs, 1, generator=generator).squeeze(1)
+            next_obs, reward, terminated, truncated, info = env.step(action.numpy())
+            done = torch.as_tensor(terminated | truncated)
+            buf["actions"][t], buf["logprobs"][t], buf["values"][t] = action, dist.log_prob(action), value
+            buf["rewards"][t] = torch.as_tensor(learning_signal(reward, info, settings), dtype=torch.float32)
+            buf["dones"][t] = done.float()
+            if "normalised_return" in info:
+                ended = info["_normalised_return"]
+                k = info["episode_in_trial"]
+                first_scores += info["normalised_return"][ended & (k == 0)].tolist()
+                last_scores += info["normalised_return"][ended & (k == settings.episodes - 1)].tolist()
+            reset = done | dummy  # after an autoreset step comes a first observation
+            dummy = done
+            obs = torch.as_tensor(next_obs)
+        with torch.no_grad():
+            next_value = policy.step(obs, h, reset)[1]
+        advantages, returns = gae(buf["rewards"], buf["values"], buf["dones"], next_value, settings)
+        losses = ppo_update(policy, optimizer, settings, buf_obs, buf_reset, buf_valid, h0, buf, advantages, returns,
+                            generator)
+        steps = (update + 1) * settings.steps_per_update
+        row = {"update": update + 1, "env_steps": steps, "seconds": round(time.perf_counter() - began, 3),
+               "episode_1_normalised_return": float(np.mean(first_scores)) if first_scores else float("nan"),
+               "episode_10_normalised_return": float(np.mean(last_scores)) if last_scores else float("nan"),
+               **losses}
+        append_metrics(out / METRICS, row)
+        progress(steps, updates * settings.steps_per_update, row)
+        if (update + 1) % settings.checkpoint_every == 0 or update + 1 == updates:
+            save_checkpoint(out / CHECKPOINT, policy, optimizer, settings, update + 1)
+    return out / CHECKPOINT
+
+
+def learning_signal(reward: np.ndarray, info: dict[str, Any], settings: Settings) -> np.ndarray:
+    """What PPO maximises: by default each inner episode's normalised return, paid when it ends.
+
+    The env's step rewards are negative and most negative right after a new episode starts, so a
+    discounted sum of them pays the agent for stalling before the last sub-goal (the next episode's
+    -1 rewards come later); the protocol scores each episode's normalised return instead, and paying
+    exactly that at the episode's end has no such incentive. `step_rewards=True` uses the raw rewards.
+    """
+    if settings.step_rewards:
+        return reward * settings.reward_scale
+    if "normalised_return" not in info:
+        return np.zeros_like(reward)
+    return np.where(info["_normalised_return"], info["normalised_return"], 0.0)
+
+
+def gae(rewards: Any, values: Any, dones: Any, next_value: Any, settings: Settings) -> tuple[Any, Any]:
+    """Generalised advantage estimates and returns over a rollout [T, B] (no bootstrap across a done)."""
+    import torch
+
+    advantages = torch.zeros_like(rewards)
+    last = torch.zeros_like(next_value)
+    for t in reversed(range(rewards.shape[0])):
+        following = next_value if t == rewards.shape[0] - 1 else values[t + 1]
+        live = 1.0 - dones[t]
+        delta = rewards[t] + settings.gamma * following * live - values[t]
+        last = delta + settings.gamma * settings.gae_lambda * live * last
+        advantages[t] = last
+    return advantages, advantages + values
+
+
+def ppo_update(policy: Any, optimizer: Any, settings: Settings, obs: Any, reset: Any, valid: Any, h0: Any,
+               buf: dict[str, Any], advantages: Any, returns: Any, generator: Any) -> dict[str, float]:
+    """PPO epochs over minibatches of whole env sequences (the GRU is replayed from each rollout's start)."""
+    import torch
+
+    n = obs.shape[1]
+    per_batch = n // settings.num_minibatches
+    stats: dict[str, list[float]] = {"policy_loss": [], "value_loss": [], "entropy": []}
+    for _ in range(settings.update_epochs):
+        order = torch.randperm(n, generator=generator)
+        for start in range(0, n, per_batch):
+            envs = order[start:start + per_batch]
+            h = h0[envs]
+            logits, values = [], []
+            for t in range(obs.shape[0]):
+                step_logits, step_value, h = policy.step(obs[t, envs], h, reset[t, envs])
+                logits.append(step_logits)
+                values.append(step_value)
+            dist = torch.distributions.Categorical(logits=torch.stack(logits))
+            new_value = torch.stack(values)
+            mask = valid[:, envs].float()
+            count = mask.sum().clamp(min=1.0)
+            adv = advantages[:, envs]
+            mean = (adv * mask).sum() / count
+            std = (((adv - mean) ** 2 * mask).sum() / count).sqrt()
+            adv = (adv - mean) / (std + 1e-8)
+            ratio = (dist.log_prob(buf["actions"][:, envs]) - buf["logprobs"][:, envs]).exp()
+            clipped = ratio.clamp(1 - settings.clip_coef, 1 + settings.clip_coef)
+            policy_loss = -(torch.min(ratio * adv, clipped * adv) * mask).sum() / count
+            value_loss = 0.5 * (((new_value - returns[:, envs]) ** 2) * mask).sum() / count
+            entropy = (dist.entropy() * mask).sum() / count
+            loss = policy_loss + settings.vf_coef * value_loss - settings.ent_coef * entropy
+            optimizer.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(policy.parameters(), settings.max_grad_norm)
+            optimizer.step()
+            for key, value in (("policy_loss", policy_loss), ("value_loss", value_loss), ("entropy", entropy)):
+                stats[key].append(value.item())
+    return {k: round(float(np.mean(v)), 6) for k, v in stats.items()}
+
+
+def append_metrics(path: Path, row: dict[str, Any]) -> None:
+    """Append one row to the metrics CSV (header on the first), flushed at once."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def keep_metrics_until(path: Path, update: int) -> None:
+    """Drop the metrics rows of updates after `update` (atomically)."""
+    if not path.exists():
+        return
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        kept, fields = [r for r in reader if int(r["update"]) <= update], reader.fieldnames or []
+    from io import StringIO
+
+    from mewa_bench.files import write_atomic
+
+    text = StringIO()
+    writer = csv.DictWriter(text, fieldnames=fields, lineterminator="\r\n")
+    writer.writeheader()
+    writer.writerows(kept)
+    write_atomic(path, text.getvalue())
+
+
+def save_checkpoint(path: Path, policy: Any, optimizer: Any, settings: Settings, update: int) -> None:
+    """Write the checkpoint atomically (a temporary sibling, then rename)."""
+    import os
+
+    import torch
+
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "settings": asdict(settings),
+                "update": update}, tmp)
+    os.replace(tmp, path)
+
+
+class RL2Agent:
+    """Plays an RL^2 checkpoint under the evaluation protocol (SPEC section 6): the hidden state and the
+    previous action, reward and new-episode flag are kept across the 10 episodes of a pair."""
+
+    def __init__(self, checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> None:
+        import torch
+
+        torch.set_num_threads(1)
+        state = torch.load(checkpoint, weights_only=False)
+        self.settings = Settings(**state["settings"])
+        self.policy = make_policy(self.settings.hidden)
+        self.policy.load_state_dict(state["model"])
+        self.policy.eval()
+        self.seed = int(seed)
+        self.greedy = str(greedy).lower() in ("true", "1", "yes")
+        self.reset_task()
+
+    def reset_task(self, seed: int | None = None) -> None:
+        """A new pair: zero hidden state, no previous action."""
+        import torch
+
+        self.rng = np.random.default_rng([self.seed] if seed is None else [self.seed, seed])
+        self.h = torch.zeros(1, self.settings.hidden)
+        self.previous_action, self.previous_reward, self.new_episode = -1, 0.0, 0.0
+        self.first = True
+
+    def act(self, observation: np.ndarray) -> int:
+        """The policy's action (sampled with the agent's own generator, or the most likely with greedy=true)."""
+        import torch
+
+        from mewa_bench.envs.meta_episode import meta_observation
+        from mewa_bench.protocol.agent import state_vector
+
+        x = meta_observation(state_vector(observation), self.previous_action, self.previous_reward, self.new_episode)
+        with torch.no_grad():
+            logits, _, self.h = self.policy.step(torch.as_tensor(x)[None], self.h, torch.tensor([self.first]))
+        self.first = False
+        probs = torch.softmax(logits[0], dim=0).double().numpy()
+        return int(np.argmax(probs)) if self.greedy else int(self.rng.choice(4, p=probs / probs.sum()))
+
+    def observe(self, transition: Any) -> None:
+        self.previous_action, self.previous_reward, self.new_episode = int(transition.action), float(transition.reward), 0.0
+
+    def end_episode(self) -> None:
+        self.new_episode = 1.0  # the next observation starts the pair's next episode
+
+
+def settings_from(values: dict[str, Any], base: Settings | None = None) -> Settings:
+    """Settings with some fields replaced (names checked)."""
+    known = set(asdict(base or Settings()))
+    unknown = set(values) - known
+    if unknown:
+        raise ValueError(f"unknown RL^2 setting(s) {sorted(unknown)}; known: {sorted(known)}")
+    return Settings(**{**asdict(base or Settings()), **values})
+
+
+def workers_arg(text: Sequence[str]) -> list[list[float]]:
+    """`--worker 0,1,1,1 --worker 1,1,1,0` as lists of floats."""
+    return [[float(v) for v in item.split(",")] for item in text]
+
+
+AGENT_FILE = '''"""RL^2 agent trained by `{command}`; plays the checkpoint beside this file.
+
+Evaluate it: `mewa-bench evaluate {folder}/agent.py --suite {suite}`.
+"""
+
+from pathlib import Path
+
+from mewa_bench.agents.rl2 import RL2Agent
+
+PRIVILEGED = False
+
+
+def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
+    return RL2Agent(checkpoint or Path(__file__).with_name("{checkpoint}"), seed=seed, greedy=greedy)
+'''
+
+
+def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:
+    """Make the run folder a submission: agent.py (plays checkpoint.pt) and a README with the command."""
+    from mewa_bench.files import write_atomic
+
+    agent = out / "agent.py"
+    write_atomic(agent, AGENT_FILE.format(command=command, folder=out, suite=settings.suite, checkpoint=CHECKPOINT))
+    readme = out / "README.md"
+    write_atomic(readme, f"# rl2 ({settings.suite}, seed {settings.seed})\n\nRL^2 (a GRU policy trained with PPO on "
+                         f"meta-episodes; `mewa_bench/agents/rl2.py`).\n\nTrained with:\n\n```\n{command}\n```\n\n"
+                         f"Settings: `{asdict(settings)}`. Training metrics: `{METRICS}`.\n")
+    return [agent, readme]
