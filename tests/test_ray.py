@@ -113,3 +113,30 @@ def test_generate_wide_on_ray_reproduces_the_shipped_suite() -> None:
     result = CliRunner().invoke(app, ["generate", "wide", "--check", "--ray"])
     assert result.exit_code == 0, result.output
     assert "byte-identical to the shipped wide-v1.json: yes" in " ".join(result.output.split())
+
+
+def test_train_one_seed_per_ray_task_gives_the_local_runs(tmp_path: Path) -> None:
+    import csv
+
+    import torch
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    for where, extra in (("ray", ["--ray"]), ("local", [])):
+        result = CliRunner().invoke(app, ["train", "rl2", "--steps", "8192", "--seed", "1", "--seed", "2",
+                                          "--worker", "0,1,1,1", "--out", str(tmp_path / where), *extra])
+        assert result.exit_code == 0, result.output
+    for seed in (1, 2):
+        on_ray = torch.load(tmp_path / "ray" / f"seed{seed}" / "checkpoint.pt", weights_only=False)
+        local = torch.load(tmp_path / "local" / f"seed{seed}" / "checkpoint.pt", weights_only=False)
+        assert all(torch.equal(on_ray["model"][k], local["model"][k]) for k in local["model"])
+
+        def metrics(where: str) -> list[dict[str, str]]:
+            with (tmp_path / where / f"seed{seed}" / "metrics.csv").open() as f:
+                return [{k: v for k, v in row.items() if k != "seconds"} for row in csv.DictReader(f)]
+
+        assert metrics("ray") == metrics("local")
+    assert not all(torch.equal(a, b) for a, b in zip(
+        torch.load(tmp_path / "local" / "seed1" / "checkpoint.pt", weights_only=False)["model"].values(),
+        torch.load(tmp_path / "local" / "seed2" / "checkpoint.pt", weights_only=False)["model"].values()))

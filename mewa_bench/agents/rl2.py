@@ -384,3 +384,15 @@ def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:
                          f"meta-episodes; `mewa_bench/agents/rl2.py`).\n\nTrained with:\n\n```\n{command}\n```\n\n"
                          f"Settings: `{asdict(settings)}`. Training metrics: `{METRICS}`.\n")
     return [agent, readme]
+
+
+def train_run(settings: Settings, folder: Path, resume: bool, command: str,
+              progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> list[Path]:
+    """Train one seed into `folder` and make it a submission; the files written."""
+    checkpoint = train(settings, folder, resume, progress)
+    return [checkpoint, folder / METRICS, *write_submission(folder, command, settings)]
+
+
+def train_job(job: tuple[Settings, Path, bool, str]) -> list[Path]:
+    """`train_run` for one (settings, folder, resume, command): a unit of work for a Ray task."""
+    return train_run(*job)

@@ -345,39 +345,57 @@ def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wi
 @app.command()
 def train(algo: str = typer.Argument(..., help="rl2 (VariBAD, PEARL and MAML are not implemented yet)."),
           suite: str = typer.Option("narrow-v1", help="Suite whose tasks and meta-train workers it trains on."),
-          seed: int = typer.Option(1, help="Training seed (runs are deterministic given it)."),
+          seed: list[int] = typer.Option([1], "--seed", help="Training seed (repeatable: one run per seed; "
+                                                           "runs are deterministic given it)."),
           steps: int = typer.Option(4_000_000, min=1, help="Env steps to train for."),
-          out: Path = typer.Option(None, help="Run folder (default: runs/<algo>-<suite>-seed<seed>)."),
+          out: Path = typer.Option(None, help="Run folder (default: runs/<algo>-<suite>-seed<seed>; with several "
+                                              "seeds, <out>/seed<seed>)."),
           resume: bool = typer.Option(False, help="Continue from the run folder's last checkpoint."),
           worker: list[str] = typer.Option([], "--worker", help="Train on this worker only, e.g. 0,1,1,1 "
-                                                                "(repeatable; default: the suite's meta-train distribution).")) -> None:
-    """Train a learned meta-RL baseline; the run folder becomes a submission (agent.py, checkpoint, metrics)."""
+                                                                "(repeatable; default: the suite's meta-train distribution)."),
+          ray: bool = typer.Option(False, "--ray", help="One Ray task per seed on a local Ray instance."),
+          ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP)) -> None:
+    """Train a learned meta-RL baseline; each run folder becomes a submission (agent.py, checkpoint, metrics)."""
     import shlex
 
     if algo != "rl2":
         raise typer.BadParameter(f"unknown algorithm {algo!r}: only rl2 is implemented so far", param_hint="ALGO")
     from mewa_bench.agents import rl2
 
-    folder = out or Path("runs") / f"{algo}-{suite}-seed{seed}"
-    try:
-        settings = rl2.settings_from({"suite": suite, "seed": seed, "total_steps": steps,
-                                      "workers": rl2.workers_arg(worker)})
-    except ValueError as e:
-        raise typer.BadParameter(str(e), param_hint="--worker") from None
+    address = _ray_option(ray, ray_address)
+    jobs = []
+    for s in dict.fromkeys(seed):  # each seed once, in the order given
+        folder = (out / f"seed{s}" if len(seed) > 1 else out) if out else Path("runs") / f"{algo}-{suite}-seed{s}"
+        try:
+            settings = rl2.settings_from({"suite": suite, "seed": s, "total_steps": steps,
+                                          "workers": rl2.workers_arg(worker)})
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--worker") from None
+        command = " ".join(["mewa-bench train", algo, "--suite", shlex.quote(suite), "--seed", str(s), "--steps",
+                            str(steps), "--out", shlex.quote(str(folder)), *(f"--worker {w}" for w in worker)])
+        jobs.append((settings, folder.resolve(), resume, command))
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task(f"{algo} on {suite}", total=steps)
+        if address is not None:  # one seed per Ray task; progress as seeds finish
+            from mewa_bench.protocol.ray_backend import ray_map, session
 
-        def show(done: int, total: int, row: dict) -> None:
-            bar.update(task, completed=done, total=total, description=(
-                f"{algo} on {suite}: episode 1 {row['episode_1_normalised_return']:.3f}, "
-                f"episode 10 {row['episode_10_normalised_return']:.3f}"))
+            task = bar.add_task(f"{algo} on {suite}: seeds on Ray", total=len(jobs))
+            with session(address):
+                written = _or_exit(lambda: ray_map(rl2.train_job, jobs, on_done=lambda _: bar.advance(task)))
+        else:
+            written = []
+            for settings, folder, _, command in jobs:
+                task = bar.add_task(f"{algo} on {suite}, seed {settings.seed}", total=steps)
 
-        checkpoint = _or_exit(lambda: rl2.train(settings, folder, resume, progress=show))
-    command = " ".join(["mewa-bench train", algo, "--suite", shlex.quote(suite), "--seed", str(seed), "--steps",
-                        str(steps), "--out", shlex.quote(str(folder)), *(f"--worker {w}" for w in worker)])
-    for path in [checkpoint, folder / rl2.METRICS, *rl2.write_submission(folder, command, settings)]:
-        console.print(f"wrote {path}")
+                def show(done: int, total: int, row: dict, task=task, s=settings.seed) -> None:
+                    bar.update(task, completed=done, total=total, description=(
+                        f"{algo} on {suite}, seed {s}: episode 1 {row['episode_1_normalised_return']:.3f}, "
+                        f"episode 10 {row['episode_10_normalised_return']:.3f}"))
+
+                written.append(_or_exit(lambda: rl2.train_run(settings, folder, resume, command, progress=show)))
+    for paths in written:
+        for path in paths:
+            console.print(f"wrote {path}")
 
 
 @suites_app.command("list")
