@@ -198,11 +198,17 @@ class MewaVectorEnv(VectorEnv):
         """Step every sub-env with its action (int array [num_envs] of colours 0..3)."""
         st = self._stack
         reward, resetting = self._move(actions)
-        nxt = self._state
+        terminated, truncated, infos = self._episode_ends(resetting)
+        self._needs_reset = terminated | truncated
+        return st.obs[self._state], reward, terminated, truncated, infos
+
+    def _episode_ends(self, resetting: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        """After `_move`: which episodes terminated or were truncated, and the infos (progress; the
+        returns of the episodes that ended, with their `_` masks)."""
+        st, nxt = self._stack, self._state
         terminated = st.terminal[nxt] & ~resetting
         truncated = (self._t >= st.horizon[self._task_idx]) & ~terminated
         done = terminated | truncated
-        self._needs_reset = done
         infos: dict[str, Any] = {"progress": st.progress[nxt]}
         if done.any():
             ti = self._task_idx
@@ -210,4 +216,4 @@ class MewaVectorEnv(VectorEnv):
             infos["normalised_return"] = np.where(done, (self._return - st.r_min[ti]) / st.r_span[ti], 0.0)
             for key in ("episode_return", "normalised_return"):
                 infos["_" + key] = done
-        return st.obs[nxt], reward, terminated, truncated, infos
+        return terminated, truncated, infos

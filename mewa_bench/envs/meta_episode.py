@@ -145,19 +145,10 @@ class MetaEpisodeVectorEnv(MewaVectorEnv):
         st = self._stack
         reward, resetting = self._move(actions)  # autoresets the meta-episodes that ended on the previous step
         self._inner[resetting] = 0
-        nxt = self._state
-        inner_terminated = st.terminal[nxt] & ~resetting
-        inner_truncated = (self._t >= st.horizon[self._task_idx]) & ~inner_terminated
+        inner_terminated, inner_truncated, infos = self._episode_ends(resetting)
         inner_done = inner_terminated | inner_truncated
         last = inner_done & (self._inner + 1 == self.episodes)
-        infos: dict[str, Any] = {"progress": st.progress[nxt], "episode_in_trial": self._inner.copy(),
-                                 "inner_done": inner_done}
-        if inner_done.any():
-            ti = self._task_idx
-            infos["episode_return"] = np.where(inner_done, self._return, 0.0)
-            infos["normalised_return"] = np.where(inner_done, (self._return - st.r_min[ti]) / st.r_span[ti], 0.0)
-            for key in ("episode_return", "normalised_return"):
-                infos["_" + key] = inner_done
+        infos.update(episode_in_trial=self._inner.copy(), inner_done=inner_done)
         following = np.flatnonzero(inner_done & ~last)  # the next inner episode starts on the same pair
         if following.size:
             self._inner[following] += 1

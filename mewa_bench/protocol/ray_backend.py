@@ -18,7 +18,7 @@ checkpoint) at the same absolute path, e.g. on a shared file system.
 
 from __future__ import annotations
 
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import replace
 from typing import Any, Callable, Iterator, Sequence
 
@@ -86,33 +86,25 @@ def check_reachable(address: str, timeout: float = REACH_TIMEOUT) -> None:
 
 def play_batches(config: Any, batches: Sequence[list[tuple[int, int]]], collect: bool,
                  worker_play: Callable, on_finished: Callable[..., None], error_type: type[Exception]) -> None:
-    """Run `worker_play(config, batch, collect)` as one Ray task per batch; `on_finished(*unit)` per unit."""
-    ray = import_ray()
+    """Run `worker_play(batch, config, collect)` as one Ray task per batch; `on_finished(*unit)` per unit."""
     from ray.exceptions import RayError, RayTaskError
 
     # Ray workers do not run in the driver's working directory: hand them absolute paths.
     config = replace(config, agent_path=config.agent_path.resolve(),
                      checkpoint=None if config.checkpoint is None else str(_absolute(config.checkpoint)))
-    remote = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(worker_play)
-    pending = [remote.remote(config, batch, collect) for batch in batches]
     try:
-        while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            try:
-                finished = ray.get(done[0])
-            except RayTaskError as e:  # the task raised: an agent error, reported as in a local run
-                cause = e.cause if isinstance(getattr(e, "cause", None), BaseException) else e
-                if isinstance(cause, error_type):
-                    raise cause from None
-                raise error_type("crash", f"a Ray task failed: {cause}") from None
-            except RayError as e:  # workers died more than MAX_RETRIES times, or the cluster went away
-                raise error_type("crash", f"Ray could not finish a batch of units ({type(e).__name__}: {e}); "
-                                          "the units finished so far are kept: run again with --resume") from None
-            for unit in finished:
-                on_finished(*unit)
-    finally:
-        for ref in pending:  # stop what is still queued or running (e.g. after an error or Ctrl-C)
-            ray.cancel(ref, force=True)
+        with closing(completed(worker_play, list(batches), config, collect)) as finished_batches:
+            for _, finished in finished_batches:
+                for unit in finished:
+                    on_finished(*unit)
+    except RayTaskError as e:  # the task raised: an agent error, reported as in a local run
+        cause = e.cause if isinstance(getattr(e, "cause", None), BaseException) else e
+        if isinstance(cause, error_type):
+            raise cause from None
+        raise error_type("crash", f"a Ray task failed: {cause}") from None
+    except RayError as e:  # workers died more than MAX_RETRIES times, or the cluster went away
+        raise error_type("crash", f"Ray could not finish a batch of units ({type(e).__name__}: {e}); "
+                                  "the units finished so far are kept: run again with --resume") from None
 
 
 def _absolute(path: str) -> Any:
@@ -122,20 +114,28 @@ def _absolute(path: str) -> Any:
     return path if "://" in path else Path(path).resolve()
 
 
-def ray_map(function: Callable, items: list, *args: Any, on_done: Callable[[Any], None] = lambda result: None) -> list:
-    """`[function(item, *args) for item in items]` as Ray tasks (retried if a worker dies), in item order."""
+def completed(function: Callable, items: list, *args: Any) -> Iterator[tuple[int, Any]]:
+    """`function(item, *args)` for every item as Ray tasks (retried if a worker dies): (index, result) as
+    each finishes. Closing the iterator early (an error, Ctrl-C) cancels what is still queued or running."""
     ray = import_ray()
     remote = ray.remote(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)(function)
     refs = [remote.remote(item, *args) for item in items]
-    results: dict[int, Any] = {}
+    index = {ref: i for i, ref in enumerate(refs)}
     pending = list(refs)
     try:
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
-            result = ray.get(done[0])
-            results[refs.index(done[0])] = result
-            on_done(result)
+            yield index[done[0]], ray.get(done[0])
     finally:
         for ref in pending:
             ray.cancel(ref, force=True)
-    return [results[i] for i in range(len(refs))]
+
+
+def ray_map(function: Callable, items: list, *args: Any, on_done: Callable[[Any], None] = lambda result: None) -> list:
+    """`[function(item, *args) for item in items]` as Ray tasks, in item order; `on_done(result)` as each finishes."""
+    results: dict[int, Any] = {}
+    with closing(completed(function, items, *args)) as finished:
+        for i, result in finished:
+            results[i] = result
+            on_done(result)
+    return [results[i] for i in range(len(items))]

@@ -175,7 +175,7 @@ class _LanePlayer:
 _WORKER_PLAYER: _LanePlayer | None = None
 
 
-def _worker_play(config: EvalConfig, units: list[tuple[int, int]], collect: bool
+def _worker_play(units: list[tuple[int, int]], config: EvalConfig, collect: bool
                  ) -> list[tuple[dict[str, Any], float, UnitRecord | None]]:
     """Entry point of a --jobs worker process or a Ray task: play a batch of units, reusing one player
     per process while the run's settings stay the same (a Ray worker may serve several runs)."""
@@ -274,7 +274,7 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
         else:
             batches = [todo[i:i + config.lanes] for i in range(0, len(todo), config.lanes)]
             with ProcessPoolExecutor(max_workers=config.jobs, mp_context=get_context("spawn")) as pool:
-                futures = [pool.submit(_worker_play, config, batch, bool(sinks)) for batch in batches]
+                futures = [pool.submit(_worker_play, batch, config, bool(sinks)) for batch in batches]
                 try:
                     for future in as_completed(futures):
                         for finished in future.result():
