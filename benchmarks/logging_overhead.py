@@ -22,7 +22,8 @@ AGENT = Path(__file__).resolve().parents[1] / "tests" / "agents" / "delayed_faul
 def timed(sinks: list[str], isolated: bool = True) -> tuple[float, int]:
     with tempfile.TemporaryDirectory() as tmp:
         made = [{"mcap": McapSink, "rerun": RerunSink}[k](Path(tmp) / f"run.{k}") for k in sinks]
-        config = EvalConfig(agent_path=AGENT, out=Path(tmp) / "r.json", agent_args={"fault": "none"}, isolated=isolated)
+        config = EvalConfig(agent_path=AGENT, out=Path(tmp) / "r.json", agent_args={"fault": "none"}, seeds=(0, 1, 2),
+                            isolated=isolated)
         start = time.perf_counter()
         results, _ = evaluate(config, sinks=made)
         return time.perf_counter() - start, sum(sum(u["lengths"]) for u in results["units"])

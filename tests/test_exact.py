@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mewa_bench.design.exact import expected_returns, plan_for
-from mewa_bench.design.optimum import known_worker_optimum
+from mewa_bench.design.optimum import known_worker_optimum, optimal_actions
 from mewa_bench.design.policies import Policy, PolicyAgent, policy_from_name, policy_names
 from mewa_bench.game import Task, normalised_return, transition_table
 
@@ -179,3 +179,40 @@ def test_optimum_equals_plain_recursion_on_a_short_horizon() -> None:
         return best
 
     assert known_worker_optimum(task, w, normalised=False)[0] == pytest.approx(value(0, task.T), abs=1e-12)
+
+
+def test_optimal_actions_achieve_the_optimum_exactly_and_by_monte_carlo() -> None:
+    """Following optimal_actions (by steps left and state) earns the known-worker optimum."""
+    task = Task(colors=(0, 2, 3), order=(2, 0, 3), K=4, M=3, rewards=(-1.0, -0.45, -0.2), worker_blocks=(3, 5, 0), T=14)
+    table = transition_table(task)
+    w = np.array([0.7, 0.35, 0.1])
+    plan = optimal_actions(task, w)
+
+    @lru_cache(maxsize=None)
+    def value(s: int, t: int) -> float:  # the plan's own value, a fixed action per (state, steps left)
+        if t == 0 or table.terminal[s]:
+            return 0.0
+        a = int(plan[t, s])
+        x = table.mistake_type[s, a]
+        ok, bad = int(table.next_ok[s, a]), int(table.next_mistake[s, a])
+        q_ok = table.reward[ok] + value(ok, t - 1)
+        return q_ok if x < 0 else (1 - w[x]) * q_ok + w[x] * (table.reward[bad] + value(bad, t - 1))
+
+    assert value(0, task.T) == pytest.approx(known_worker_optimum(task, w, normalised=False)[0], abs=1e-12)
+
+    worker = np.array([0.9, 0.6, 0.3, 0.2])  # the canonical task, full horizon: sampled episodes
+    plan, table, rng = optimal_actions(CANONICAL, worker), transition_table(CANONICAL), np.random.default_rng(5)
+    returns = np.zeros(4000)
+    for e in range(len(returns)):
+        s = 0
+        for left in range(CANONICAL.T, 0, -1):
+            a = plan[left, s]
+            x = table.mistake_type[s, a]
+            s = table.next_mistake[s, a] if x >= 0 and rng.random() < worker[x] else table.next_ok[s, a]
+            returns[e] += table.reward[s]
+            if table.terminal[s]:
+                break
+    exact = known_worker_optimum(CANONICAL, worker, normalised=False)[0]
+    assert abs(returns.mean() - exact) < 4 * returns.std() / np.sqrt(len(returns))
+    best_family = expected_returns(CANONICAL, None, worker[None, :], normalised=False).max()
+    assert exact > best_family + 1e-3  # a worker where the step-level plan beats every t-optimal policy

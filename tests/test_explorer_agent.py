@@ -135,3 +135,35 @@ def test_short_evaluation_adapts_on_an_overloaded_worker(tmp_path: Path) -> None
     assert scores.shape == (3, 10)
     assert scores[:, -1].mean() > scores[:, 0].mean() + 0.2
     assert scores[:, -1].mean() > 0.95
+
+
+def test_step_plan_follows_the_known_worker_optimum_of_a_pessimistic_worker(explorer: ModuleType) -> None:
+    """With much evidence on every mistake type, a later episode follows the step-level plan when it beats
+    the t-optimal family: the plan's actions are the known-worker optimum of the planning worker, which
+    sits at or above the posterior mean for every type (pessimism), and the episode-1 choice stays t-optimal."""
+    from mewa_bench.design.exact import expected_returns, structural_task
+    from mewa_bench.design.optimum import known_worker_optimum, optimal_actions
+    from mewa_bench.game.rules import state_from_observation
+    from mewa_bench.game.table import transition_table
+
+    suite = load_suite("narrow-v1")
+    task, worker = suite.tasks[0], np.array([1.0, 0.9, 0.9, 0.9])
+    agent = explorer.BayesExplorerAgent(suite="narrow-v1")
+    env = MewaEnv(task=task, worker=worker)
+    obs, _ = env.reset(seed=3)
+    agent.act(obs)
+    assert not agent.planned_episode  # the first episode never follows the plan (plan_from = 1)
+
+    agent.reset_task(seed=0)
+    agent.mistakes = np.round(40 * worker)
+    agent.successes = 40 - agent.mistakes
+    agent.episodes_done = 1
+    action = agent.act(obs)
+    planning = agent.planning_worker(task)
+    rounding = agent.settings.plan_quantum / 2
+    assert np.all(planning >= agent.posterior_mean() - rounding) and np.all(np.abs(planning - worker) <= 0.15)
+    gain = known_worker_optimum(task, [planning])[0] - expected_returns(task, None, [planning]).max()
+    assert agent.planned_episode == bool(gain / expected_returns(task, None, [planning]).max() >= 0.005)
+    assert agent.planned_episode  # this worker is one where the plan pays
+    state = transition_table(structural_task(task)).index[state_from_observation(task, obs)]
+    assert action == optimal_actions(task, planning)[task.T, state]

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mewa_bench"
-FLOORS = {"files": 0, "game": 0, "design": 1, "envs": 2, "protocol": 3, "agents": 4}  # anything else: the edge
+FLOORS = {"files": 0, "extras": 0, "game": 0, "design": 1, "envs": 2, "protocol": 3, "agents": 4}  # else: the edge
 EDGE = 5
 # (importer, imported): upward imports that are part of the design, each with its reason.
 ALLOWED = {
@@ -65,6 +65,8 @@ LIGHT = [
      ("lerobot", "torch", "huggingface_hub", "datasets")),
     ("import mewa_bench.logs", ("mcap", "rerun", "PIL")),
     ("import mewa_bench.render", ("sapien",)),
+    ("import mewa_bench.extras, mewa_bench.agents.rl2, mewa_bench.datasets.lerobot_recorder",
+     ("torch", "lerobot", "datasets", "huggingface_hub")),
     ("import gymnasium as gym, mewa_bench; env = gym.make('mewa/MEWA-v0'); env.reset(seed=0); env.step(0)", ("sapien",)),
 ]
 

@@ -13,10 +13,10 @@ import pytest
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.leaderboard import LeaderboardReport, build_leaderboards
 from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, write_results
-from mewa_bench.protocol.config import DEFAULT_SEEDS
+from mewa_bench.protocol.config import default_seeds
 from mewa_bench.protocol.scoring import score_units
 
-SEEDS = list(DEFAULT_SEEDS)  # only runs with the protocol's default seeds are ranked
+SEEDS = list(default_seeds("narrow-v1"))  # only runs with the protocol's default seeds are ranked
 K = 10
 # name -> (score level at episode 1, gain by episode 10, privileged)
 AGENTS = {"steady": (0.90, 0.0, False), "learner": (0.88, 0.08, False), "weak": (0.70, 0.01, False),

@@ -5,7 +5,11 @@ from __future__ import annotations
 import base64
 import io
 import json
+import signal
+import socket
 import subprocess
+import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Any
@@ -510,9 +514,24 @@ def test_the_rerun_program_is_the_installed_one():
     assert out.returncode == 0 and "0.41.0" in out.stdout
 
 
+class FinishedViewer:
+    """Stands in for the viewer process: records its command and has already exited with 0."""
+
+    pid = -1  # no process group: nothing to stop
+
+    def __init__(self, calls: list, command: list[str], **popen_options: object) -> None:
+        calls.append(command)
+
+    def wait(self, timeout: float | None = None) -> int:
+        return 0
+
+    def poll(self) -> int:
+        return 0
+
+
 def test_viewer_on_a_missing_file_is_a_clear_error(tmp_path, monkeypatch):
     calls = []
-    monkeypatch.setattr(view.subprocess, "call", lambda command: calls.append(command) or 0)
+    monkeypatch.setattr(view.subprocess, "Popen", lambda command, **kw: FinishedViewer(calls, command, **kw))
     with pytest.raises(ViewerError, match="no such file"):
         open_viewer(tmp_path / "missing.rrd")
     with pytest.raises(ViewerError, match="not a file"):
@@ -520,8 +539,50 @@ def test_viewer_on_a_missing_file_is_a_clear_error(tmp_path, monkeypatch):
     assert calls == []
     rrd = tmp_path / "run.rrd"
     rrd.write_bytes(b"")
-    assert open_viewer(rrd, web=True) == 0
-    assert calls == [viewer_command(rrd, web=True)]
+    assert open_viewer(rrd, web=True, web_port=free_port()) == 0
+    assert len(calls) == 1 and "--web-viewer" in calls[0]
+
+
+def free_port() -> int:
+    """A port nobody listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_web_viewer_on_a_taken_port_says_which_and_how_to_choose_another(tmp_path):
+    rrd = tmp_path / "run.rrd"
+    rrd.write_bytes(b"")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(ViewerError, match=rf"port {port} .*already in use.*--port"):
+            open_viewer(rrd, web=True, web_port=port)
+
+
+def test_sigterm_to_view_web_stops_the_viewer_and_frees_its_port(tmp_path):
+    """`mewa-bench view --web` killed by SIGTERM takes its Rerun server down with it."""
+    rrd = tmp_path / "run.rrd"
+    sink = RerunSink(rrd)
+    run_logged(tmp_path, {"fault": "none"}, [sink])
+    port = free_port()
+    command = [str(Path(sys.executable).parent / "mewa-bench"), "view", "--web", "--port", str(port), str(rrd)]
+    viewer = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while not view.port_in_use(port):
+            assert viewer.poll() is None and time.monotonic() < deadline, "the web viewer never listened"
+            time.sleep(0.2)
+        viewer.send_signal(signal.SIGTERM)
+        assert viewer.wait(timeout=30) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 15
+        while view.port_in_use(port):
+            assert time.monotonic() < deadline, f"port {port} still taken: the Rerun server outlived mewa-bench"
+            time.sleep(0.2)
+    finally:
+        if viewer.poll() is None:
+            viewer.kill()
 
 
 def test_resuming_a_finished_run_writes_no_empty_log(tmp_path):

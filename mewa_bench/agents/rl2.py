@@ -36,6 +36,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from mewa_bench.extras import require
+
 OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
 CHECKPOINT = "checkpoint.pt"
 METRICS = "metrics.csv"
@@ -71,10 +73,15 @@ class Settings:
         return self.num_envs * self.num_steps
 
 
+def _torch() -> Any:
+    """The torch module (the train extra; the datasets extra brings it too)."""
+    return require("torch", "train", "RL^2 (`mewa-bench train rl2` and its checkpoints)")
+
+
 def make_policy(hidden: int) -> Any:
     """The network: encoder, GRU, actor and critic heads."""
-    import torch
-    from torch import nn
+    torch = _torch()
+    nn = torch.nn
 
     class RL2Policy(nn.Module):
         def __init__(self) -> None:
@@ -114,7 +121,7 @@ def train(settings: Settings, out: Path, resume: bool = False,
     A resumed run restarts its rollouts from the checkpoint's update (fresh env states and random
     streams derived from the seed and that update): deterministic, but not the bytes of an
     uninterrupted run."""
-    import torch
+    torch = _torch()
 
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
@@ -201,7 +208,7 @@ def learning_signal(reward: np.ndarray, info: dict[str, Any], settings: Settings
 
 def gae(rewards: Any, values: Any, dones: Any, next_value: Any, settings: Settings) -> tuple[Any, Any]:
     """Generalised advantage estimates and returns over a rollout [T, B] (no bootstrap across a done)."""
-    import torch
+    torch = _torch()
 
     advantages = torch.zeros_like(rewards)
     last = torch.zeros_like(next_value)
@@ -217,7 +224,7 @@ def gae(rewards: Any, values: Any, dones: Any, next_value: Any, settings: Settin
 def ppo_update(policy: Any, optimizer: Any, settings: Settings, obs: Any, reset: Any, valid: Any, h0: Any,
                buf: dict[str, Any], advantages: Any, returns: Any, generator: Any) -> dict[str, float]:
     """PPO epochs over minibatches of whole env sequences (the GRU is replayed from each rollout's start)."""
-    import torch
+    torch = _torch()
 
     n = obs.shape[1]
     per_batch = n // settings.num_minibatches
@@ -287,7 +294,7 @@ def save_checkpoint(path: Path, policy: Any, optimizer: Any, settings: Settings,
     """Write the checkpoint atomically (a temporary sibling, then rename)."""
     import os
 
-    import torch
+    torch = _torch()
 
     tmp = path.with_name(f".{path.name}.tmp")
     torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "settings": asdict(settings),
@@ -300,7 +307,7 @@ class RL2Agent:
     previous action, reward and new-episode flag are kept across the 10 episodes of a pair."""
 
     def __init__(self, checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> None:
-        import torch
+        torch = _torch()
 
         torch.set_num_threads(1)
         state = torch.load(checkpoint, weights_only=False)
@@ -314,7 +321,7 @@ class RL2Agent:
 
     def reset_task(self, seed: int | None = None) -> None:
         """A new pair: zero hidden state, no previous action."""
-        import torch
+        torch = _torch()
 
         self.rng = np.random.default_rng([self.seed] if seed is None else [self.seed, seed])
         self.h = torch.zeros(1, self.settings.hidden)
@@ -323,11 +330,10 @@ class RL2Agent:
 
     def act(self, observation: np.ndarray) -> int:
         """The policy's action (sampled with the agent's own generator, or the most likely with greedy=true)."""
-        import torch
-
         from mewa_bench.envs.meta_episode import meta_observation
         from mewa_bench.protocol.agent import state_vector
 
+        torch = _torch()
         x = meta_observation(state_vector(observation), self.previous_action, self.previous_reward, self.new_episode)
         with torch.no_grad():
             logits, _, self.h = self.policy.step(torch.as_tensor(x)[None], self.h, torch.tensor([self.first]))

@@ -7,9 +7,12 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (BarColumn, DownloadColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn,
                            TimeElapsedColumn, TransferSpeedColumn)
 from rich.table import Table
+
+from mewa_bench.extras import MissingExtra
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="MEWA meta-RL benchmark: evaluate agents on frozen suites, generate suites, record data.")
@@ -30,7 +33,7 @@ def info() -> None:
 @app.command()
 def rollout(episodes: int = typer.Option(3, min=1, help="Episodes to play."),
             seed: int = typer.Option(0, help="Seed of the env and the policy."),
-            render: bool = typer.Option(False, help="Print every step as text.")) -> None:
+            render: bool = typer.Option(False, metavar="", help="Print every step as text.")) -> None:
     """Play a few episodes of the default env (narrow-v1 task, meta-train workers) with random actions."""
     from mewa_bench.envs.rollout import random_rollouts
 
@@ -41,7 +44,7 @@ def rollout(episodes: int = typer.Option(3, min=1, help="Episodes to play."),
     console.print(table)
 
 
-DEFAULT_SEED_COUNT = 50  # = len(protocol.runner.DEFAULT_SEEDS), kept here so --help imports nothing heavy
+DEFAULT_SEEDS_HELP = "the suite's protocol seeds: 256 on narrow-*, 96 on wide-*, 50 on suites of your own"
 RAY_HELP = "Run the units as Ray tasks on a local Ray instance (needs the ray extra; --jobs caps its CPUs)."
 RAY_ADDRESS_HELP = ("Run the units as Ray tasks on the Ray cluster at this address (e.g. 10.0.0.5:6379 or auto); "
                     "nodes need mewa-bench and the agent file at the same path.")
@@ -49,29 +52,29 @@ RAY_ADDRESS_HELP = ("Run the units as Ray tasks on the Ray cluster at this addre
 
 @app.command()
 def evaluate(
-    agent: Path = typer.Argument(..., help="Your agent: a .py file with make_agent(observation_space, action_space) or class Agent."),
+    agent: Path = typer.Argument(..., metavar="AGENT", help="Your agent: a .py file with make_agent(observation_space, action_space) or class Agent."),
     suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1: the paper's; narrow-v2, wide-v2: recommended for adaptation) or path."),
-    seeds: str = typer.Option(str(DEFAULT_SEED_COUNT), help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; "
-                              "ranked runs use the protocol's default."),
+    seeds: str = typer.Option("default", help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; default: "
+                              f"{DEFAULT_SEEDS_HELP} (ranked runs use exactly these)."),
     out: Path = typer.Option(None, help="Results file (default: results/<agent>-<suite>.json)."),
     name: str = typer.Option(None, help="Agent name in the results (default: from the file name)."),
     agent_arg: list[str] = typer.Option([], "--agent-arg", help="key=value passed to make_agent / Agent (repeatable)."),
     checkpoint: str = typer.Option(None, help="Checkpoint path passed to the agent as checkpoint=..."),
-    in_process: bool = typer.Option(False, "--in-process", help="Run the agent in this process (debugging; no limits)."),
+    in_process: bool = typer.Option(False, "--in-process", metavar="", help="Run the agent in this process (debugging; no limits)."),
     time_limit: float = typer.Option(10.0, help="Seconds per agent call (0 = none)."),
     memory_limit: str = typer.Option("4G", help="Agent address-space limit, e.g. 4G, 512M, or none."),
-    privileged: bool = typer.Option(False, help="Tell the agent the hidden pair (reference agents only; never ranked)."),
+    privileged: bool = typer.Option(False, metavar="", help="Tell the agent the hidden pair (reference agents only; never ranked)."),
     jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
     lanes: int = typer.Option(64, min=1, help="Agent objects played side by side per process (one IPC round trip "
                               "per step for all of them); 1 = one agent playing the units in order."),
-    resume: bool = typer.Option(False, help="Continue an interrupted run in the same results file (same agent file)."),
-    overwrite: bool = typer.Option(False, help="Replace an existing results file."),
+    resume: bool = typer.Option(False, metavar="", help="Continue an interrupted run in the same results file (same agent file)."),
+    overwrite: bool = typer.Option(False, metavar="", help="Replace an existing results file."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
     log: str = typer.Option(None, help="Trajectory logs to write: mcap, rerun or mcap,rerun."),
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files (named after the results file)."),
     mode: str = typer.Option("vector", help="vector (float32[18]) or sapien ({'state', 'image'} rendered by SAPIEN)."),
     image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
-    ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
+    ray: bool = typer.Option(False, "--ray", metavar="", help=RAY_HELP),
     ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
 ) -> None:
     """Score an agent on a frozen suite under the 10-episode adaptation protocol and write a results file."""
@@ -79,7 +82,7 @@ def evaluate(
     from mewa_bench.cli.results_tables import results_table
 
     config = EvalConfig(
-        agent_path=agent, suite=suite, seeds=_parse_seeds(seeds), out=out, name=name,
+        agent_path=agent, suite=suite, seeds=None if seeds == "default" else _parse_seeds(seeds), out=out, name=name,
         agent_args=_parse_agent_args(agent_arg), checkpoint=checkpoint, isolated=not in_process,
         time_limit=time_limit or None, memory_limit=_parse_bytes(memory_limit), privileged=privileged,
         jobs=jobs, lanes=lanes, resume=resume, overwrite=overwrite,
@@ -119,7 +122,7 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
         stem = (config.out or default_results_path(config, load_suite(config.suite))).stem
         sinks = [*make_log_sinks(kinds, log_dir, stem), *extra_sinks]
     except (ValueError, OSError) as e:  # bad --log, or a --log-dir that cannot be created
-        console.print(f"[red]error:[/red] {e}")
+        _print_error(e)
         raise typer.Exit(1) from None
     with Progress(SpinnerColumn(), TextColumn("[progress.description]{task.description}"), BarColumn(),
                   MofNCompleteColumn(), TimeElapsedColumn(), console=console, transient=True) as bar:
@@ -129,7 +132,7 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
                                      sinks=sinks)
         except EvaluationError as e:
             bar.stop()
-            console.print(f"[red]error:[/red] {e}")
+            _print_error(e)
             out = config.out or default_results_path(config, load_suite(config.suite))
             if out.exists():
                 console.print(f"The units finished before the error are kept in {out}. If the failure was not the "
@@ -137,9 +140,9 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
                               f"{resume_hint or 'run again with another --results file'}; "
                               "a changed agent file needs a new run.")
             raise typer.Exit(1) from None
-        except ValueError as e:  # bad suite, results file or option
+        except (ValueError, MissingExtra) as e:  # bad suite, results file or option; a log/dataset extra missing
             bar.stop()
-            console.print(f"[red]error:[/red] {e}")
+            _print_error(e)
             raise typer.Exit(1) from None
         except (RuntimeError, OSError) as e:  # a log/dataset sink failed, or a file could not be written
             bar.stop()
@@ -159,15 +162,15 @@ def record(
     fps: int = typer.Option(10, help="Frames per second stored in the dataset."),
     results: Path = typer.Option(None, help="Results file of the rollout (default: <out>.results.json)."),
     agent_arg: list[str] = typer.Option([], "--agent-arg", help="key=value passed to the agent (repeatable)."),
-    privileged: bool = typer.Option(False, help="Tell an agent file the hidden pair (e.g. the oracle)."),
+    privileged: bool = typer.Option(False, metavar="", help="Tell an agent file the hidden pair (e.g. the oracle)."),
     jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
     log: str = typer.Option(None, help="Also write trajectory logs: mcap, rerun or mcap,rerun."),
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3."),
     mode: str = typer.Option("vector", help="vector, or sapien to also record camera images."),
     image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
-    video: bool = typer.Option(False, help="Store sapien images as AV1 video (smaller, lossy) instead of PNG."),
-    ray: bool = typer.Option(False, "--ray", help=RAY_HELP),
+    video: bool = typer.Option(False, metavar="", help="Store sapien images as AV1 video (smaller, lossy) instead of PNG."),
+    ray: bool = typer.Option(False, "--ray", metavar="", help=RAY_HELP),
     ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
 ) -> None:
     """Roll out a baseline policy or an agent under the evaluation protocol and record a LeRobot dataset."""
@@ -193,8 +196,8 @@ def record(
 
 
 @app.command()
-def view(file: Path = typer.Argument(..., help="A Rerun recording (.rrd) written with --log rerun."),
-         web: bool = typer.Option(False, help="Serve the web viewer on 127.0.0.1 instead of opening a window."),
+def view(file: Path = typer.Argument(..., metavar="FILE", help="A Rerun recording (.rrd) written with --log rerun."),
+         web: bool = typer.Option(False, metavar="", help="Serve the web viewer on 127.0.0.1 instead of opening a window."),
          port: int = typer.Option(None, help="Port of the web viewer.")) -> None:
     """Open a Rerun recording in the Rerun viewer."""
     import os
@@ -209,7 +212,7 @@ def view(file: Path = typer.Argument(..., help="A Rerun recording (.rrd) written
     try:
         code = open_viewer(file, web=web, web_port=port)
     except ViewerError as e:
-        console.print(f"[red]error:[/red] {e}")
+        _print_error(e)
         raise typer.Exit(1) from None
     raise typer.Exit(code)
 
@@ -217,7 +220,7 @@ def view(file: Path = typer.Argument(..., help="A Rerun recording (.rrd) written
 @app.command()
 def leaderboard(submissions: Path = typer.Option(Path("submissions"), help="Folder of submissions/<name>/ results."),
                 out: Path = typer.Option(Path("leaderboards"), help="Where to write the tables, plots and page."),
-                strict: bool = typer.Option(True, help="Exit with code 1 when a results file was skipped "
+                strict: bool = typer.Option(True, metavar="", help="Exit with code 1 when a results file was skipped "
                                                        "(the boards are written either way).")) -> None:
     """Validate every results file in submissions/ and write leaderboards/<suite>.md, .csv, .png and index.html."""
     from mewa_bench.leaderboard import build_leaderboards
@@ -249,7 +252,7 @@ def _mode_options(mode: str, image_size: str) -> dict:
         try:
             require_render_device()
         except RenderUnavailable as e:
-            console.print(f"[red]error:[/red] {e}")
+            _print_error(e)
             raise typer.Exit(1) from None
     return {"mode": mode, "image_size": (height, width)}
 
@@ -298,11 +301,11 @@ app.add_typer(suites_app, name="suites")
 
 
 @app.command()
-def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wide-v2"),
+def generate(kind: str = typer.Argument(..., metavar="KIND", help="narrow, wide, narrow-v2 or wide-v2"),
              out: Path = typer.Option(None, "--out", help="Where to write the suite (default: ./<name>.json; "
                                                            "with --check, nothing is written unless --out is given)."),
-             check: bool = typer.Option(False, help="Compare the result byte for byte with the shipped suite."),
-             ray: bool = typer.Option(False, "--ray", help="Design the candidate tasks as Ray tasks on a local Ray "
+             check: bool = typer.Option(False, metavar="", help="Compare the result byte for byte with the shipped suite."),
+             ray: bool = typer.Option(False, "--ray", metavar="", help="Design the candidate tasks as Ray tasks on a local Ray "
                                                            "instance (wide suites: one task per Ray task)."),
              ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP)) -> None:
     """Regenerate a suite from the paper's task-design method (exact; reproduces the shipped file byte for byte)."""
@@ -343,17 +346,17 @@ def generate(kind: str = typer.Argument(..., help="narrow, wide, narrow-v2 or wi
 
 
 @app.command()
-def train(algo: str = typer.Argument(..., help="rl2 (VariBAD, PEARL and MAML are not implemented yet)."),
+def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2 (VariBAD, PEARL and MAML are not implemented yet)."),
           suite: str = typer.Option("narrow-v1", help="Suite whose tasks and meta-train workers it trains on."),
           seed: list[int] = typer.Option([1], "--seed", help="Training seed (repeatable: one run per seed; "
                                                            "runs are deterministic given it)."),
           steps: int = typer.Option(4_000_000, min=1, help="Env steps to train for."),
           out: Path = typer.Option(None, help="Run folder (default: runs/<algo>-<suite>-seed<seed>; with several "
                                               "seeds, <out>/seed<seed>)."),
-          resume: bool = typer.Option(False, help="Continue from the run folder's last checkpoint."),
+          resume: bool = typer.Option(False, metavar="", help="Continue from the run folder's last checkpoint."),
           worker: list[str] = typer.Option([], "--worker", help="Train on this worker only, e.g. 0,1,1,1 "
                                                                 "(repeatable; default: the suite's meta-train distribution)."),
-          ray: bool = typer.Option(False, "--ray", help="One Ray task per seed on a local Ray instance."),
+          ray: bool = typer.Option(False, "--ray", metavar="", help="One Ray task per seed on a local Ray instance."),
           ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP)) -> None:
     """Train a learned meta-RL baseline; each run folder becomes a submission (agent.py, checkpoint, metrics)."""
     import shlex
@@ -411,7 +414,7 @@ def suites_list() -> None:
 
 
 @suites_app.command("show")
-def suites_show(name: str = typer.Argument(..., help="Suite name or path.")) -> None:
+def suites_show(name: str = typer.Argument(..., metavar="NAME", help="Suite name or path.")) -> None:
     """Tasks, curated workers and baselines of a suite."""
     from mewa_bench.design.suites import load_suite
     from mewa_bench.cli.suite_tables import pair_table, summary_table, task_table
@@ -424,7 +427,7 @@ def suites_show(name: str = typer.Argument(..., help="Suite name or path.")) -> 
 
 
 @suites_app.command("verify")
-def suites_verify(path: Path = typer.Argument(None, help="A suite file (default: every shipped suite).")) -> None:
+def suites_verify(path: Path = typer.Argument(None, metavar="PATH", help="A suite file (default: every shipped suite).")) -> None:
     """Check that suite files match their recorded content hash."""
     from mewa_bench.design.suites import ALL_SUITES, load_suite
 
@@ -462,7 +465,7 @@ def datasets_list(catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None
 
 
 @datasets_app.command("info")
-def datasets_info(name: str = typer.Argument(..., help="Dataset name (or name@version)."),
+def datasets_info(name: str = typer.Argument(..., metavar="NAME", help="Dataset name (or name@version)."),
                   catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
     """Everything the catalog says about one dataset."""
     from mewa_bench.datasets.catalog import dataset_info, load_catalog
@@ -475,7 +478,7 @@ def datasets_info(name: str = typer.Argument(..., help="Dataset name (or name@ve
 
 
 @datasets_app.command("download")
-def datasets_download(source: str = typer.Argument(..., help="Catalog name, archive URL, or Hugging Face Hub repo id."),
+def datasets_download(source: str = typer.Argument(..., metavar="SOURCE", help="Catalog name, archive URL, or Hugging Face Hub repo id."),
                       dir: Path = typer.Option(Path("mewa-datasets"), "--dir", help="Where datasets are unpacked."),
                       sha256: str = typer.Option(None, help="Expected sha256 of an archive URL not in the catalog."),
                       catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
@@ -501,7 +504,7 @@ def datasets_download(source: str = typer.Argument(..., help="Catalog name, arch
 
 
 @datasets_app.command("pack")
-def datasets_pack(dataset: Path = typer.Argument(..., help="A recorded dataset folder."),
+def datasets_pack(dataset: Path = typer.Argument(..., metavar="DATASET", help="A recorded dataset folder."),
                   name: str = typer.Option(..., help="Catalog name."), version: str = typer.Option("1.0.0"),
                   suite: str = typer.Option(..., help="Suite it was recorded on."),
                   policy: str = typer.Option(..., help="Policy or agent that generated it."),
@@ -521,12 +524,17 @@ def datasets_pack(dataset: Path = typer.Argument(..., help="A recorded dataset f
     console.print(f"wrote {out / archive_name(name, version)} ({entry['size']:,} bytes, sha256 {entry['sha256'][:16]}…); catalog {catalog_path}")
 
 
+def _print_error(error: Exception) -> None:
+    """Print a library error's message as it is (not as rich markup, which would eat `mewa-bench[datasets]`)."""
+    console.print(f"[red]error:[/red] {escape(str(error))}")
+
+
 def _or_exit(call, *args):
-    """Call, turning a library error (bad suite, catalog, download...) into a clean message and exit code 1."""
+    """Call, turning a library error (bad suite, catalog, download, missing extra...) into a message and exit 1."""
     try:
         return call(*args)
-    except (ValueError, RuntimeError, OSError) as e:
-        console.print(f"[red]error:[/red] {e}")
+    except (ValueError, RuntimeError, OSError, MissingExtra) as e:
+        _print_error(e)
         raise typer.Exit(1) from None
 
 

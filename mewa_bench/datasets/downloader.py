@@ -25,6 +25,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterator
 
 from mewa_bench.datasets.catalog import NAME_RE, SHA256_RE, URL_SCHEMES, DatasetError, dataset_info
+from mewa_bench.extras import MissingExtra, require
 
 Progress = Callable[[int, int | None], None]  # (bytes done, total bytes or None when unknown)
 CHUNK = 1 << 20
@@ -239,9 +240,9 @@ def install(new: Path, target: Path) -> Path:
 
 def hub_snapshot(repo_id: str, local_dir: Path, revision: str | None = None) -> None:
     """Download a Hub dataset repo into `local_dir` (the only function that talks to the Hub)."""
-    from huggingface_hub import snapshot_download
-
-    snapshot_download(repo_id, repo_type="dataset", local_dir=local_dir, revision=revision)
+    hub = require("huggingface_hub", "datasets",
+                  "downloading from the Hugging Face Hub (`mewa-bench datasets download`)")
+    hub.snapshot_download(repo_id, repo_type="dataset", local_dir=local_dir, revision=revision)
 
 
 def _download_hub(src: Source, dest_dir: Path) -> Downloaded:
@@ -252,6 +253,8 @@ def _download_hub(src: Source, dest_dir: Path) -> Downloaded:
         local = work / src.name
         try:
             hub_snapshot(src.hf_repo_id, local, src.revision)
+        except MissingExtra:
+            raise  # not a download failure: the message says what to install
         except Exception as e:  # the hub raises many types (HTTP, offline mode, missing repo)
             raise DatasetError(f"{where}: download failed: {type(e).__name__}: {e}") from None
         shutil.rmtree(local / ".cache", ignore_errors=True)  # huggingface_hub's own bookkeeping

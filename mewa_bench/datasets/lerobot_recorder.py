@@ -28,7 +28,7 @@ On disk (LeRobot v3.0; frames of many episodes share a file, `meta/episodes` say
 
 Read it back with `LeRobotDataset(repo_id, root=..., video_backend="pyav")` (without the backend,
 lerobot probes torchcodec, which cannot load here and prints a long traceback before falling back).
-lerobot (and torch) are imported only when the first unit is written.
+lerobot (and torch) are imported when the run starts, through `mewa_bench.extras` (the datasets extra).
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from mewa_bench.extras import require
 from mewa_bench.game.palette import (COLOR_NAMES, OBS_AGENT_BLOCKS, OBS_COMPLETED, OBS_MISTAKE_FLAGS, OBS_SIZE,
                                       OBS_STRUCTURE_BLOCKS, OBS_WORKER_LEFT, OBS_WORKER_PLACED)
 from mewa_bench.protocol.trajectory import EpisodeRecord, RunInfo, UnitRecord
@@ -138,6 +139,11 @@ def _worker_indices(run: RunInfo) -> dict[tuple[float, ...], int] | None:
     return out
 
 
+def _datasets_extra(module: str) -> Any:
+    """A module of the datasets extra (lerobot, Hugging Face datasets), or MissingExtra."""
+    return require(module, "datasets", "recording a LeRobot dataset (`mewa-bench record`)")
+
+
 class LeRobotSink:
     """A `TrajectorySink` writing a LeRobot v3.0 dataset at `root` (which must not exist yet)."""
 
@@ -165,10 +171,11 @@ class LeRobotSink:
     # -- TrajectorySink ------------------------------------------------------------------------------
 
     def start(self, run: RunInfo) -> None:
-        """Remember the run; fail now (not after the first unit) if `root` exists."""
+        """Remember the run; fail now (not after the first unit) if `root` exists or lerobot is missing."""
         if self.root.exists():
             raise FileExistsError(f"dataset directory {self.root} already exists: LeRobot writes a new dataset "
                                   "into a directory that does not exist yet")
+        _datasets_extra("lerobot.datasets.lerobot_dataset")
         self.run = run
         suite_workers = _worker_indices(run)
         self.workers_from_suite = suite_workers is not None
@@ -213,16 +220,14 @@ class LeRobotSink:
 
     def _create(self, image_shape: tuple[int, int, int] | None) -> Any:
         """Create the LeRobot dataset; the image feature exists only if the first unit has images."""
-        import datasets
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-        datasets.disable_progress_bars()  # one "Map" bar per episode otherwise
+        lerobot_dataset = _datasets_extra("lerobot.datasets.lerobot_dataset")
+        _datasets_extra("datasets").disable_progress_bars()  # one "Map" bar per episode otherwise
         if image_shape is not None:
             self._check_image_shape(image_shape)
         assert self.run is not None
-        ds = LeRobotDataset.create(self.repo_id, self.fps, features=make_features(image_shape, self.video),
-                                   root=self.root, robot_type=self.run.env_id, use_videos=self.video,
-                                   video_backend="pyav")
+        ds = lerobot_dataset.LeRobotDataset.create(
+            self.repo_id, self.fps, features=make_features(image_shape, self.video), root=self.root,
+            robot_type=self.run.env_id, use_videos=self.video, video_backend="pyav")
         self.image_shape = image_shape
         self._write_meta()
         return ds
@@ -365,7 +370,7 @@ def _batched_image_embedding() -> Iterator[None]:
     lerobot 0.6.1 maps `embed_table_storage` over an episode row by row (about 2.5 ms a row, even with no
     image column), which made it most of the recording time; the result is the same table.
     """
-    from lerobot.datasets import dataset_writer
+    dataset_writer = _datasets_extra("lerobot.datasets.dataset_writer")
 
     original = getattr(dataset_writer, "embed_images", None)
     if original is None:  # another lerobot layout: leave it alone

@@ -59,8 +59,13 @@ def _layout(table: TransitionTable, horizon: int) -> _Layout:
                    branching, kind[branching], table.progress[order].astype(np.int64), active)
 
 
-def _optimal_block(task: Task, layout: _Layout, workers: np.ndarray) -> np.ndarray:
-    """Optimal raw return from the initial state for a block of workers [Wc, N] -> [Wc]."""
+def _optimal_block(task: Task, layout: _Layout, workers: np.ndarray,
+                   actions: np.ndarray | None = None) -> np.ndarray:
+    """Optimal raw return from the initial state for a block of workers [Wc, N] -> [Wc].
+
+    With `actions` ([T + 1, S] in layout order, one worker), also the optimal action of every
+    state that can be reached with t steps left, in row t.
+    """
     w_branch = workers.T[layout.mistake_type]
     arrival = np.append(np.asarray(task.rewards, dtype=np.float64), 0.0)[layout.progress][:, None]
     after = np.repeat(arrival, len(workers), axis=1)  # arrival reward + V_t, here t = 0
@@ -74,9 +79,24 @@ def _optimal_block(task: Task, layout: _Layout, workers: np.ndarray) -> np.ndarr
         gap = after[layout.bad[branching]] - q[branching]
         gap *= w_branch[:nb]
         q[branching] += gap
+        if actions is not None:
+            actions[t, :n_active] = np.argmax(q.reshape(n_active, NUM_COLORS), axis=1)
         np.max(q.reshape(n_active, NUM_COLORS, -1), axis=1, out=value[:n_active])
         np.add(value[:n_active], arrival[:n_active], out=after[:n_active])
     return value[0]  # the initial state is the only state at depth 0
+
+
+def optimal_actions(task: Task, worker: np.ndarray | Sequence[float]) -> np.ndarray:
+    """The known-worker optimal policy: action [T + 1, S] by steps left and table state (ties: lowest action)."""
+    arr = as_workers([worker], task.N)
+    table = transition_table(structural_task(task))
+    layout = _layout(table, task.T)
+    by_position = np.zeros((task.T + 1, table.n_states), dtype=np.int8)
+    _optimal_block(task, layout, arr, by_position)
+    order = np.argsort(state_depths(table), kind="stable")  # layout position -> table state
+    out = np.empty_like(by_position)
+    out[:, order] = by_position
+    return out
 
 
 def known_worker_optimum(task: Task, workers: np.ndarray | Sequence, normalised: bool = True,

@@ -20,7 +20,7 @@ import numpy as np
 
 from mewa_bench.design.suites import ALL_SUITES, Suite, SuiteError, load_suite
 from mewa_bench.protocol.results import PROTOCOL_VERSION, ResultsError, read_results
-from mewa_bench.protocol.config import DEFAULT_SEEDS, EPISODES_PER_PAIR
+from mewa_bench.protocol.config import EPISODES_PER_PAIR, default_seeds
 from mewa_bench.protocol.scoring import Scores, episode_scores, score_units
 
 TOLERANCE = 1e-9
@@ -114,8 +114,9 @@ def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
         raise InvalidResults(f"episodes_per_pair is {results['episodes_per_pair']!r}; the protocol plays "
                              f"{EPISODES_PER_PAIR} per pair")
     seeds = _seeds(results["seeds"])
-    if seeds != DEFAULT_SEEDS:
-        raise InvalidResults(f"ranked runs use the protocol's default seeds 0..{len(DEFAULT_SEEDS) - 1}; this run used "
+    expected = default_seeds(suite.name)
+    if seeds != expected:
+        raise InvalidResults(f"ranked runs on {suite.name} use the protocol's default seeds 0..{len(expected) - 1}; this run used "
                              f"{len(seeds)} seed(s) {_short(seeds)}: re-run without --seeds")
     units = _covering_units(results["units"], suite, seeds)
     scores = _verified_scores(units, suite, results["scores"])

@@ -24,6 +24,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from mewa_bench.extras import require
 from mewa_bench.logs.common import event_message, is_warning, run_metadata
 from mewa_bench.protocol.trajectory import EpisodeRecord, RunInfo, StepRecord, UnitRecord
 
@@ -199,15 +200,15 @@ class McapSink:
 
     def start(self, run: RunInfo) -> None:
         """Create the file: header, schemas, channels and the run's metadata."""
-        from mcap.writer import Writer
-
         from mewa_bench import __version__
+
+        mcap_writer = require("mcap.writer", "logs", "writing MCAP logs (`--log mcap`)")
 
         if self._writer is not None:
             raise RuntimeError(f"{self.path}: McapSink.start() called twice")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
-        self._writer = Writer(self._file)
+        self._writer = mcap_writer.Writer(self._file)
         self._writer.start(profile=PROFILE, library=f"mewa-bench {__version__}")
         for topic, schema in CHANNELS.items():
             if topic == TOPIC_CAMERA and run.mode == "vector":

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from mewa_bench.extras import require
 from mewa_bench.logs.common import event_message, is_warning, run_digest, run_metadata
 from mewa_bench.protocol.trajectory import EpisodeRecord, RunInfo, UnitRecord
 
@@ -32,6 +33,11 @@ NORMALISED_RETURN, SCORE = "mewa/normalised_return", "mewa/score"
 EPISODE_WINDOW = 100  # steps shown around the time cursor: T, the longest episode
 
 
+def _rerun() -> Any:
+    """The rerun module (rerun-sdk, from the logs extra)."""
+    return require("rerun", "logs", "writing Rerun logs (`--log rerun`)")
+
+
 def recording_id(run: RunInfo) -> str:
     """A UUID derived from the run's settings (agent and suite hashes, seeds, mode, ...)."""
     return str(uuid.UUID(hex=run_digest(run)[:32]))
@@ -39,7 +45,7 @@ def recording_id(run: RunInfo) -> str:
 
 def time_columns(g: np.ndarray, pair: int, episode: int) -> list[Any]:
     """The three timelines of rows at global steps `g`, all in one episode."""
-    import rerun as rr
+    rr = _rerun()
 
     n = len(g)
     return [rr.TimeColumn("global_step", sequence=g), rr.TimeColumn("pair", sequence=np.full(n, pair)),
@@ -62,8 +68,8 @@ def bar_chart_column(values: np.ndarray) -> Any:
     `rr.BarChart.columns` only takes a single vector, and one `rr.BarChart` per step costs ~0.4 ms
     (most of a run's logging time), so the arrow column is built directly, in the type rerun uses.
     """
-    import pyarrow as pa
-    import rerun as rr
+    rr = _rerun()
+    import pyarrow as pa  # a dependency of rerun-sdk
 
     values = np.ascontiguousarray(values, dtype=np.float32)
     n, k = values.shape
@@ -86,7 +92,7 @@ def bar_chart_column(values: np.ndarray) -> Any:
 
 def default_blueprint(camera: bool) -> Any:
     """The layout an episode reads best in: reward/return plots, observation bars, events, camera."""
-    import rerun.blueprint as rrb
+    rrb = _rerun().blueprint
 
     recent = rrb.VisibleTimeRange("global_step", start=rrb.TimeRangeBoundary.cursor_relative(seq=-EPISODE_WINDOW),
                                   end=rrb.TimeRangeBoundary.cursor_relative(seq=0))
@@ -114,7 +120,7 @@ class RerunSink:
 
     def start(self, run: RunInfo) -> None:
         """Open the recording: file sink with its default blueprint, run properties, series styles."""
-        import rerun as rr
+        rr = _rerun()
 
         if self._rec is not None:
             raise RuntimeError(f"{self.path}: RerunSink.start() called twice")
@@ -148,7 +154,7 @@ class RerunSink:
 
     def _log_styles(self) -> None:
         """Static series names and markers, so plots read without a legend hunt."""
-        import rerun as rr
+        rr = _rerun()
 
         for path, name in ((REWARD, "reward"), (RETURN, "return"), (PROGRESS, "sub-goals reached")):
             self._rec.log(path, rr.SeriesLines(names=name), static=True)
@@ -162,7 +168,7 @@ class RerunSink:
 
     def _log_episode(self, unit: UnitRecord, ep: EpisodeRecord) -> None:
         """Per-step data as columns (one call per entity), camera frames, then the episode's outcome."""
-        import rerun as rr
+        rr = _rerun()
 
         rec, steps = self._rec, ep.steps
         if not steps:

@@ -7,6 +7,7 @@ the same agent file and seeds give the same results file however the run is exec
 from __future__ import annotations
 
 import hashlib
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,19 @@ from mewa_bench.protocol.isolation import DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIM
 
 EPISODES_PER_PAIR = 10
 DEFAULT_LANES = 64
-DEFAULT_SEEDS = tuple(range(50))  # protocol 2: set by the power analysis in docs/protocol.md
+# protocol 2: seeds 0..n-1 per suite family, set by the power analysis in docs/protocol.md (section 4)
+DEFAULT_SEED_COUNTS = {"narrow": 256, "wide": 96}
+OTHER_SUITES_SEED_COUNT = 50  # suites of your own: no power analysis behind this one
+
+
+def suite_family(suite_name: str) -> str:
+    """'narrow-v2' -> 'narrow': the name without its version suffix."""
+    return re.sub(r"-v\d+$", "", suite_name)
+
+
+def default_seeds(suite_name: str) -> tuple[int, ...]:
+    """The protocol's seeds for a suite (ranked runs use exactly these)."""
+    return tuple(range(DEFAULT_SEED_COUNTS.get(suite_family(suite_name), OTHER_SUITES_SEED_COUNT)))
 
 
 @dataclass(frozen=True)
@@ -26,7 +39,7 @@ class EvalConfig:
 
     agent_path: Path
     suite: str = "narrow-v1"
-    seeds: tuple[int, ...] = DEFAULT_SEEDS
+    seeds: tuple[int, ...] | None = None  # None: the suite's default_seeds
     episodes: int = EPISODES_PER_PAIR
     out: Path | None = None
     name: str | None = None

@@ -12,6 +12,7 @@ units side by side on one agent process (`_LanePlayer`), and the dispatch over -
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from datetime import datetime, timezone
@@ -24,7 +25,7 @@ import numpy as np
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.envs.mewa_env import MewaEnv
 from mewa_bench.protocol.agent import Transition
-from mewa_bench.protocol.config import EvalConfig, default_results_path, env_seed, hidden_pair, unit_seed
+from mewa_bench.protocol.config import EvalConfig, default_results_path, default_seeds, env_seed, hidden_pair, unit_seed
 from mewa_bench.protocol.isolation import END_EPISODE, RESET_TASK, STEP, AgentError, AgentRunner, make_agent_runner
 from mewa_bench.protocol.results import ResultsError, finish, new_results, resume_from, unit_key, write_results
 from mewa_bench.protocol.scoring import episode_score
@@ -220,6 +221,9 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
     """
     if not config.agent_path.exists():
         raise EvaluationError("load", f"agent file {config.agent_path} does not exist")
+    suite = load_suite(config.suite)
+    if config.seeds is None:
+        config = dataclasses.replace(config, seeds=default_seeds(suite.name))
     for what, values in (("seeds", config.seeds), ("pairs", config.pairs or ())):
         if len(set(values)) != len(values):
             raise ValueError(f"{what} {list(values)} repeat a value: every (pair, seed) unit is played once")
@@ -227,7 +231,6 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
         raise ValueError("at least one seed is needed")
     if config.lanes < 1:
         raise ValueError(f"lanes must be >= 1, got {config.lanes}")
-    suite = load_suite(config.suite)
     out = config.out or default_results_path(config, suite)
     results = new_results(config, suite)
     if config.resume and out.exists():

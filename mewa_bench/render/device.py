@@ -17,6 +17,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from mewa_bench.extras import MissingExtra
+
 CPU_KIND = "cpu (lavapipe)"
 GPU_KIND = "gpu"
 # Mesa 22.3's lavapipe reports Vulkan 1.1 and cannot run SAPIEN 3; recent ones report >= 1.3.
@@ -26,8 +28,9 @@ INSTALL_HINT = (
     "install the Vulkan loader and a recent lavapipe (Mesa 25 works) with `bash .ci/install-vulkan` "
     "from the mewa-bench repository, or by hand on Debian 12: add the bookworm-backports source, then "
     "`apt-get install libvulkan1 mesa-vulkan-drivers/bookworm-backports` "
-    "(and `pip install sapien==3.0.3`)"
+    "(and `pip install 'mewa-bench[sapien]'`)"
 )
+SAPIEN_FEATURE = "SAPIEN mode (`--mode sapien`)"
 # PCI vendor ids of /sys/class/drm/renderD*/device/vendor, by the Mesa driver names that serve them.
 _MESA_GPU_VENDORS = {
     "radeon": "0x1002", "intel": "0x8086", "intel_hasvk": "0x8086", "nouveau": "0x10de",
@@ -217,7 +220,7 @@ def require_render_device(probe: bool = False) -> RenderDevice:
     if _active is not None:
         return _active
     if not _sapien_installed():
-        raise RenderUnavailable("SAPIEN is not installed: `pip install sapien==3.0.3`")
+        raise RenderUnavailable(str(MissingExtra("sapien", "sapien", SAPIEN_FEATURE)))
     device = find_render_device()
     if device is None:
         named = _explicit_icds()

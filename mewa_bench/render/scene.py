@@ -13,10 +13,11 @@ from typing import Any
 
 import numpy as np
 
+from mewa_bench.extras import MissingExtra, require
 from mewa_bench.game.rules import State
 from mewa_bench.game.task import Task
 from mewa_bench.render import layout
-from mewa_bench.render.device import RenderDevice, RenderUnavailable, require_render_device
+from mewa_bench.render.device import SAPIEN_FEATURE, RenderDevice, RenderUnavailable, require_render_device
 
 # sRGB colours of the palette (orange, blue, green, red) and the worker's grey blocks.
 BLOCK_SRGB = ((245, 130, 20), (30, 90, 225), (35, 165, 55), (215, 30, 30), (150, 150, 155))
@@ -49,10 +50,9 @@ def look_quaternion(direction: tuple[float, float, float]) -> list[float]:
 def _import_sapien() -> Any:
     """sapien, imported after the Vulkan driver is chosen."""
     try:
-        import sapien
-    except ImportError as e:  # pragma: no cover - require_render_device checks it is installed
-        raise RenderUnavailable(f"SAPIEN cannot be imported ({e}): `pip install sapien==3.0.3`") from e
-    return sapien
+        return require("sapien", "sapien", SAPIEN_FEATURE)
+    except MissingExtra as e:  # pragma: no cover - require_render_device checks it is installed
+        raise RenderUnavailable(str(e)) from e
 
 
 class _Block:

@@ -174,9 +174,10 @@ def recommendation_section(suites: list[Suite]) -> str:
                   "- **narrow-v2 and wide-v2 are what we recommend for measuring adaptation.** Their non-adaptive gaps, "
                   f"{gaps['narrow-v2']:.4f} and {gaps['wide-v2']:.4f}, are {gaps['narrow-v2'] / gaps['narrow-v1']:.0f}x and "
                   f"{gaps['wide-v2'] / gaps['wide-v1']:.0f}x v1's, and the best fixed policy is no better than the random "
-                  "task-specific baseline, so a score above it is adaptation, not game knowledge. At protocol 2's default "
-                  "50 seeds the shipped agents' paired differences with the best fixed policy have 95% CI half-widths of "
-                  "0.001-0.006 (leaderboards/, docs/protocol.md): 1-2% of the v2 gaps, but up to 20-40% of the v1 gaps."]
+                  "task-specific baseline, so a score above it is adaptation, not game knowledge. With protocol 2's default "
+                  "seeds (256 narrow, 96 wide) the shipped agents' paired differences with the best fixed policy have 95% "
+                  "CI half-widths of at most 0.003 (leaderboards/, docs/protocol.md): under 1% of the v2 gaps, but up to "
+                  "10-30% of the v1 gaps."]
     return "\n".join(lines) + "\n"
 
 

@@ -17,11 +17,16 @@ t-optimal policy family.
   return of every policy at every grid worker is computed once per task (`mewa_bench.design.exact`,
   about 0.6 s for N = 4), so each decision is one weighted average. It decides at every episode
   start and, unless `adapt_within_episode=false`, again after every mistake observation.
+- Cache: the posterior depends only on the evidence counts (mistakes and successes per mistake
+  type), so each task model remembers the policy it chose for every count vector seen so far (one
+  small entry each, kept for the life of the process and shared by its agents): a repeated decision
+  is a dictionary look-up with the same result. Task inference and the state of an observation are
+  look-ups in the task's transition table (`mewa_bench.agents.task_inference`).
 
 `reset_task(seed=...)` forgets the task candidates and the evidence. The agent is deterministic;
 `seed` (with the unit's seed from the protocol) only drives the uniform-random fallback used if no
-known task explains what it sees. Task models are read-only and shared by all the agents of a
-process (the evaluation runner plays several side by side).
+known task explains what it sees. Task models (with their cached decisions) are shared by all the
+agents of a process (the evaluation runner plays several side by side).
 
 Run it: `mewa-bench evaluate submissions/bayes-adaptive/agent.py --suite narrow-v1`.
 """
@@ -39,10 +44,9 @@ from scipy.stats import beta as beta_distribution
 from mewa_bench.design.exact import expected_returns
 from mewa_bench.design.policies import TOptimal, toptimal_family
 from mewa_bench.design.suites import SHIPPED_SUITES
-from mewa_bench.game.rules import state_from_observation
 from mewa_bench.game.task import Task
 from mewa_bench.protocol.agent import Transition, state_vector
-from mewa_bench.agents.task_inference import TaskBelief, public_tasks
+from mewa_bench.agents.task_inference import TaskBelief, observed_state, public_tasks
 
 PRIVILEGED = False
 NUM_ACTIONS = 4
@@ -59,6 +63,10 @@ class Evidence:
     def record(self, mistake_type: int, mistaken: bool) -> None:
         """A structure got its second block with `mistake_type + 1` structures open."""
         (self.mistakes if mistaken else self.successes)[mistake_type] += 1
+
+    def counts(self, n: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The counts of mistake types 0..n-1, hashable: (mistakes, successes)."""
+        return tuple(self.mistakes[:n].tolist()), tuple(self.successes[:n].tolist())
 
 
 def non_increasing_grid(n: int, step: float) -> np.ndarray:
@@ -81,7 +89,7 @@ def log_prior(grid: np.ndarray, prior_mean: Sequence[float], strength: float, st
 
 
 class TaskModel:
-    """For one task: the worker grid, its prior, and every t-optimal policy's exact return per grid worker."""
+    """For one task: the worker grid, its prior, each t-optimal policy's exact return per grid worker, its decisions."""
 
     def __init__(self, task: Task, step: float, prior_strength: float) -> None:
         average = task.average_worker if task.average_worker is not None else (0.5,) * task.N
@@ -91,6 +99,7 @@ class TaskModel:
         self.log_w = np.log(np.maximum(self.grid, TINY))
         self.log_not_w = np.log(np.maximum(1.0 - self.grid, TINY))
         self.values = expected_returns(task, self.policies, self.grid)  # [P, G]
+        self.decisions: dict[tuple, TOptimal] = {}  # evidence counts -> best policy
 
     def posterior(self, evidence: Evidence) -> np.ndarray:
         """Posterior probability of each grid worker."""
@@ -104,6 +113,14 @@ class TaskModel:
         return self.posterior(evidence) @ self.grid
 
     def best_policy(self, evidence: Evidence) -> TOptimal:
+        """The policy with the highest posterior expected return, computed once per evidence counts."""
+        key = evidence.counts(self.grid.shape[1])  # all that `posterior` reads from the evidence
+        best = self.decisions.get(key)
+        if best is None:
+            best = self.decisions[key] = self.compute_best_policy(evidence)
+        return best
+
+    def compute_best_policy(self, evidence: Evidence) -> TOptimal:
         """The policy with the highest posterior expected return (the first one on ties)."""
         return self.policies[int(np.argmax(self.values @ self.posterior(evidence)))]
 
@@ -153,7 +170,7 @@ class BayesAdaptiveAgent:
         task = self.task_belief.task
         if task is None or self.policy is None:  # an unknown task: nothing to infer from
             return int(self.rng.integers(NUM_ACTIONS))
-        choice = self.policy.choices(task, state_from_observation(task, obs), self.memory)[0]
+        choice = self.policy.choices(task, observed_state(task, obs), self.memory)[0]
         self.memory = choice.memory
         return int(choice.action)
 

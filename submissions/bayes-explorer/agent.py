@@ -25,6 +25,13 @@ t-optimal policy family.
   myopic best (the highest posterior expected score).
 - Within an episode, after every trial (`replan=myopic`, the default), it switches to the myopic
   best policy if that beats the current one by `switch_margin`, keeping the run counters.
+- Step-level plan (from the second episode on, `step_plan=1`): the *planning worker* takes, per
+  mistake type, the posterior `plan_quantile` (0.9) quantile of w_x, so types it has seen little of
+  count as error-prone. If the known-worker optimal plan for that worker
+  (`mewa_bench.design.optimum.optimal_actions`, by state and steps left) beats the best t-optimal
+  policy for it by `plan_margin` in score, the episode follows the plan instead of a t-optimal
+  policy; the planning worker is recomputed after every trial, so the plan adapts within the
+  episode. Plans are cached per process by the rounded worker (`plan_quantum`, at most 256 MB).
 
 Exact returns of every policy at every grid worker come from `mewa_bench.design.exact` once per
 task and are shared by all agents of a process. Randomness: only `np.random.default_rng([seed,
@@ -37,6 +44,7 @@ from __future__ import annotations
 
 import sys
 import types
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -47,6 +55,7 @@ NUM_ACTIONS = 4
 EPISODES_PER_PAIR = 10
 TINY = 1e-300  # stands in for 0 under log, so that 0 observations x log(0) = 0, not nan
 MIN_BEST = 0.1  # smallest best return a score is divided by (curation keeps pairs with >= 0.1)
+PLAN_CACHE_BYTES = 256 * 2**20  # step-level plans kept per process (a plan is [T + 1, S] int8, <= 0.7 MB)
 COARSE = 0.1  # grid step of the lookahead's support (a sub-grid of the 0.05 grid)
 TERMINAL = -1  # the replay chain's terminal node (mewa_bench.design.exact.TERMINAL)
 
@@ -164,6 +173,9 @@ class TaskModel:
         self.coarse_log_not_w = np.log(np.maximum(1.0 - self.coarse_grid, TINY))
         here = np.array([int(np.flatnonzero((self.grid == c).all(axis=1))[0]) for c in self.coarse_grid])
         self.coarse_values = self.values[:, here]  # [P, C]: values at the coarse points themselves
+        columns = [np.unique(self.grid[:, x], return_inverse=True) for x in range(self.grid.shape[1])]
+        self.levels = [levels for levels, _ in columns]  # the values w_x takes on the grid
+        self.level_of = [inverse.ravel() for _, inverse in columns]  # [G]: each grid worker's level of w_x
 
     def log_posterior(self, mistakes: np.ndarray, successes: np.ndarray) -> np.ndarray:
         """Unnormalised log posterior of each grid worker given mistake counts per type."""
@@ -201,7 +213,7 @@ class Settings:
     """The agent's knobs (agent args)."""
 
     grid_step: float = 0.05
-    floor: float = 0.05
+    floor: float = 0.3
     scenarios: int = 48
     horizon: int = 60
     kg_threshold: float = 0.002
@@ -210,6 +222,11 @@ class Settings:
     replan: str = "myopic"  # or "none": keep the episode's policy to its end
     switch_margin: float = 0.0
     episodes: int = EPISODES_PER_PAIR
+    step_plan: int = 1  # 0: t-optimal policies only
+    plan_from: int = 1  # first episode (0-based) that may be played by the step-level plan
+    plan_quantile: float = 0.9  # the planning worker: this posterior quantile of each w_x
+    plan_margin: float = 0.005  # the plan must beat the best t-optimal policy by this much (score)
+    plan_quantum: float = 0.025  # planning workers are rounded to this grid (plans are cached by it)
 
 
 def posterior_of(log_post: np.ndarray) -> np.ndarray:
@@ -292,6 +309,9 @@ class BayesExplorerAgent:
         self.log_post: np.ndarray | None = None
         self.posterior_task: Any = None
         self.episode_starting = True
+        self.planned_episode = False
+        self.steps_done = 0
+        self.planning: tuple[Any, np.ndarray] | None = None  # (task, planning worker) until the next trial
 
     def act(self, obs: Any) -> int:
         """The chosen policy's action for the candidate task's state."""
@@ -302,8 +322,14 @@ class BayesExplorerAgent:
         if self.episode_starting:
             self.task_belief.start_episode(obs)
             self.episode_starting = False
-            self.choose_policy(reset_memory=True)
+            self.steps_done = 0
+            self.planned_episode = self.step_plan_pays()
+            if not self.planned_episode:
+                self.choose_policy(reset_memory=True)
         task = self.task_belief.task
+        if self.planned_episode and task is not None:
+            self.steps_done += 1
+            return self.planned_action(task, state_from_observation(task, obs))
         if task is None or self.policy is None:  # no public task explains what was seen
             return int(self.rng.integers(NUM_ACTIONS))
         choice = self.policy.choices(task, state_from_observation(task, obs), self.memory)[0]
@@ -311,11 +337,13 @@ class BayesExplorerAgent:
         return int(choice.action)
 
     def observe(self, transition: Any) -> None:
-        """Narrow the task candidates, record the trial seen (if any) and re-plan."""
+        """Narrow the task candidates, record the trial seen (if any) and re-plan (the step-level plan
+        re-plans by itself: its planning worker follows the posterior)."""
         acted_for = self.task_belief.task
         why = self.task_belief.update(transition)
         observed = why is not None and why.mistake_type >= 0
         if observed:
+            self.planning = None
             (self.mistakes if why.mistaken else self.successes)[why.mistake_type] += 1
             if self.log_post is not None and self.task_belief.task is self.posterior_task:
                 model = self.model(self.posterior_task)
@@ -323,10 +351,62 @@ class BayesExplorerAgent:
                 self.log_post = self.log_post + column[:, why.mistake_type]
         if transition.terminated or transition.truncated:
             self.episode_starting = True
+        elif self.planned_episode:
+            pass
         elif self.task_belief.task is not acted_for:
             self.choose_policy(reset_memory=True)
         elif observed and self.settings.replan != "none":
             self.choose_policy(reset_memory=False)
+
+    def step_plan_pays(self) -> bool:
+        """Whether this episode follows the step-level plan: its gain over the best t-optimal policy
+        at the planning worker is at least `plan_margin`."""
+        s = self.settings
+        if not s.step_plan or self.episodes_done < s.plan_from or self.task_belief.task is None:
+            return False
+        return self.step_plan(self.task_belief.task)[1] >= s.plan_margin
+
+    def step_plan(self, task: Any) -> tuple[np.ndarray, float]:
+        """The known-worker optimal actions [T + 1, S] for the planning worker, and their score gain
+        over the best t-optimal policy for that worker; cached per process by the rounded worker."""
+        from mewa_bench.design.exact import expected_returns
+        from mewa_bench.design.optimum import known_worker_optimum, optimal_actions
+
+        worker = self.planning_worker(task)
+        key = (task.key(), tuple(worker))
+        plans = _shared_plans()
+        if key in plans:
+            plans.move_to_end(key)
+            return plans[key]
+        best_t = float(expected_returns(task, self.model(task).policies, [worker]).max())
+        gain = (float(known_worker_optimum(task, [worker])[0]) - best_t) / max(best_t, MIN_BEST)
+        plans[key] = (optimal_actions(task, worker), gain)
+        while sum(actions.nbytes for actions, _ in plans.values()) > PLAN_CACHE_BYTES:
+            plans.popitem(last=False)  # least recently used
+        return plans[key]
+
+    def planned_action(self, task: Any, state: Any) -> int:
+        """The step-level plan's action in `state` with T - steps_done + 1 steps left."""
+        from mewa_bench.design.exact import structural_task
+        from mewa_bench.game.table import transition_table
+
+        table = transition_table(structural_task(task))  # cached per task by the game layer
+        left = max(task.T - self.steps_done + 1, 1)
+        return int(self.step_plan(task)[0][left, table.index[state]])
+
+    def planning_worker(self, task: Any) -> np.ndarray:
+        """Per component, the posterior `plan_quantile` quantile of w_x (pessimistic: components the
+        agent has seen little of count as error-prone), rounded to `plan_quantum`; kept until the next trial."""
+        if self.planning is not None and self.planning[0] is task:
+            return self.planning[1]
+        model, s = self.model(task), self.settings
+        post = posterior_of(self.current_log_posterior())
+        worker = np.array([model.levels[x][np.searchsorted(np.cumsum(np.bincount(model.level_of[x], weights=post)),
+                                                           s.plan_quantile - 1e-12).clip(max=len(model.levels[x]) - 1)]
+                           for x in range(task.N)])
+        worker = np.round(np.round(worker / s.plan_quantum) * s.plan_quantum, 6)
+        self.planning = (task, worker)
+        return worker
 
     def end_episode(self) -> None:
         """Count the episode; the next act() starts another of the same pair."""
@@ -390,12 +470,18 @@ def _cache() -> types.ModuleType:
         holder = sys.modules[_CACHE_MODULE] = types.ModuleType(_CACHE_MODULE)
         holder.models = {}  # type: ignore[attr-defined]
         holder.public = {}  # type: ignore[attr-defined]
+        holder.plans = OrderedDict()  # type: ignore[attr-defined]
     return holder
 
 
 def _shared_models() -> dict:
     """Task models shared by every agent of the process."""
     return _cache().models  # type: ignore[attr-defined]
+
+
+def _shared_plans() -> OrderedDict:
+    """Step-level plans shared by every agent of the process, least recently used first."""
+    return _cache().plans  # type: ignore[attr-defined]
 
 
 def _shared_public(suites: str) -> tuple[list[Any], dict[tuple, list[Listing]]]:
