@@ -60,6 +60,12 @@ def test_download_a_shipped_dataset_and_load_it_with_lerobot(tmp_path: Path) -> 
     entry = next(e for e in load_catalog(CATALOG)["datasets"] if e["name"] == name)
     ds = LeRobotDataset(f"mewa/{name}", root=tmp_path / name, video_backend="pyav")
     assert ds.num_episodes == entry["episodes"] and ds.num_frames == entry["frames"]
+    # the README's fast read of the index columns agrees with frame-by-frame indexing
+    names = ["pair_index", "seed", "episode_in_pair", "episode_index"]
+    cols = ds.hf_dataset.select_columns(names).with_format("numpy")[:]
+    for i in (0, 1, ds.num_frames // 2, ds.num_frames - 1):
+        assert [int(cols[n][i]) for n in names] == [int(ds[i][n]) for n in names]
+    assert len(set(cols["pair_index"].tolist())) > 1
     listed = runner.invoke(app, ["datasets", "list", "--catalog", str(CATALOG)])
     assert listed.exit_code == 0 and name[:6] in listed.output
     missing = runner.invoke(app, ["datasets", "info", "no-such-dataset", "--catalog", str(CATALOG)])
@@ -144,3 +150,34 @@ def test_recording_twice_gives_the_same_bytes(tmp_path: Path) -> None:
     for name in files:
         assert (tmp_path / "a" / "ds" / name).read_bytes() == (tmp_path / "b" / "ds" / name).read_bytes(), name
     assert entries[0]["sha256"] == entries[1]["sha256"]
+
+
+def test_a_wheel_carries_the_shipped_catalog_and_its_archives(tmp_path: Path) -> None:
+    """Built as pip builds it, the wheel installs datasets/ under <prefix>/share/mewa-bench/datasets, and an
+    install without the checkout finds that catalog; its relative URLs resolve to the installed archives."""
+    import subprocess
+    import sys
+    import zipfile
+
+    from mewa_bench.datasets.catalog import INSTALLED_DATASETS, default_catalog_path
+
+    root = Path(__file__).resolve().parents[1]
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "wheel"),
+                            str(root)], capture_output=True, text=True, timeout=600)
+    assert built.returncode == 0, built.stderr
+    wheel = zipfile.ZipFile(next((tmp_path / "wheel").glob("mewa_bench-*.whl")))
+    prefix = tmp_path / "prefix"
+    for name in wheel.namelist():  # what pip does with a wheel's .data/data/ tree: it goes under the prefix
+        if ".data/data/" in name:
+            target = prefix / name.split(".data/data/", 1)[1]
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_bytes(wheel.read(name))
+    path = default_catalog_path(checkout=tmp_path / "no-checkout" / "index.json", prefix=prefix)
+    assert path == prefix / INSTALLED_DATASETS / "index.json"
+    shipped = load_catalog(root / "datasets" / "index.json", resolve=False)["datasets"]
+    installed = load_catalog(path)["datasets"]
+    assert [e["name"] for e in installed] == [e["name"] for e in shipped]
+    for entry in installed:
+        archive = Path(entry["url"].removeprefix("file://"))
+        assert archive.parent == path.parent and hashlib.sha256(archive.read_bytes()).hexdigest() == entry["sha256"]
+    assert default_catalog_path(prefix=prefix) == root / "datasets" / "index.json"  # a checkout reads its own

@@ -147,7 +147,10 @@ def test_the_train_command_makes_a_submission_folder(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["train", "rl2", "--steps", "8192", "--out", str(out), "--worker", "0,1,1,1",
                                       "--worker", "1,1,1,0"])
     assert result.exit_code == 0, result.output
-    assert {p.name for p in out.iterdir()} >= {"agent.py", "README.md", CHECKPOINT, METRICS}
+    assert {p.name for p in out.iterdir()} >= {"agent.py", "README.md", CHECKPOINT, METRICS, "training_curve.png"}
+    from matplotlib.image import imread
+
+    assert imread(out / "training_curve.png").shape[2] in (3, 4)
     assert "--worker 0,1,1,1 --worker 1,1,1,0" in (out / "README.md").read_text()
     results, _ = evaluate(EvalConfig(agent_path=out / "agent.py", out=tmp_path / "r.json", seeds=(0,), pairs=(0,)))
     assert len(results["units"]) == 1 and results["agent"]["name"] == "rl2-run"

@@ -29,6 +29,7 @@ fixed policy (tests/test_rl2.py). No checkpoint trained on the shipped suites is
 from __future__ import annotations
 
 import csv
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -384,7 +385,8 @@ def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:
     from mewa_bench.files import write_atomic
 
     agent = out / "agent.py"
-    write_atomic(agent, AGENT_FILE.format(command=command, folder=out, suite=settings.suite, checkpoint=CHECKPOINT))
+    shown = os.path.relpath(out) if Path(out).resolve().is_relative_to(Path.cwd()) else str(out)  # no machine paths
+    write_atomic(agent, AGENT_FILE.format(command=command, folder=shown, suite=settings.suite, checkpoint=CHECKPOINT))
     readme = out / "README.md"
     write_atomic(readme, f"# rl2 ({settings.suite}, seed {settings.seed})\n\nRL^2 (a GRU policy trained with PPO on "
                          f"meta-episodes; `mewa_bench/agents/rl2.py`).\n\nTrained with:\n\n```\n{command}\n```\n\n"

@@ -396,8 +396,12 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2 (VariBAD, PE
                         f"episode 10 {row['episode_10_normalised_return']:.3f}"))
 
                 written.append(_or_exit(lambda: rl2.train_run(settings, folder, resume, command, progress=show)))
-    for paths in written:
-        for path in paths:
+    from mewa_bench.reports.training_curves import plot_training_curves
+
+    for (settings, folder, _, _), paths in zip(jobs, written):
+        curve = plot_training_curves({f"seed {settings.seed}": folder / rl2.METRICS}, folder / "training_curve.png",
+                                     f"{algo} on {suite}, seed {settings.seed}")
+        for path in [*paths, curve]:
             console.print(f"wrote {path}")
 
 
@@ -447,7 +451,8 @@ def suites_report(out: Path = typer.Option(Path("docs"), "--out", help="Folder f
 
 datasets_app = typer.Typer(no_args_is_help=True, help="List, inspect, download and pack offline datasets.")
 app.add_typer(datasets_app, name="datasets")
-CATALOG_HELP = "Dataset catalog (default: datasets/index.json of the checkout, or $MEWA_DATASETS_CATALOG)."
+CATALOG_HELP = ("Dataset catalog (default: $MEWA_DATASETS_CATALOG, else datasets/index.json of the checkout, else the "
+                "copy a wheel installs in <prefix>/share/mewa-bench/datasets).")
 
 
 @datasets_app.command("list")

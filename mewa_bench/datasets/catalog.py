@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -29,10 +30,20 @@ class DatasetError(RuntimeError):
     """A catalog, download or archive problem, with a message saying what and where."""
 
 
-def default_catalog_path() -> Path:
-    """`$MEWA_DATASETS_CATALOG`, else `datasets/index.json` at the repository root."""
+INSTALLED_DATASETS = Path("share") / "mewa-bench" / "datasets"  # where a wheel puts the shipped catalog (pyproject)
+
+
+CHECKOUT_CATALOG = Path(__file__).resolve().parents[2] / "datasets" / "index.json"
+
+
+def default_catalog_path(checkout: Path = CHECKOUT_CATALOG, prefix: Path | None = None) -> Path:
+    """`$MEWA_DATASETS_CATALOG`; else `datasets/index.json` of the checkout; else the copy a wheel installs
+    under `<prefix>/share/mewa-bench/datasets/` (with its archives, so relative URLs still resolve)."""
     env = os.environ.get(CATALOG_ENV)
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "datasets" / "index.json"
+    if env:
+        return Path(env)
+    installed = Path(sys.prefix if prefix is None else prefix) / INSTALLED_DATASETS / "index.json"
+    return installed if not checkout.exists() and installed.exists() else checkout
 
 
 def empty_catalog() -> dict[str, Any]:

@@ -1,0 +1,31 @@
+"""Shipped learned agents (a checkpoint in their submission folder) reproduce their committed results."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.runner import evaluate
+
+SUBMISSIONS = Path(__file__).resolve().parents[1] / "submissions"
+CHECKPOINTED = sorted(p for p in SUBMISSIONS.glob("*/results-*.json") if (p.parent / "checkpoint.pt").exists())
+SAMPLE_PAIRS, SAMPLE_SEEDS = (0, 1), (0, 1)  # the whole file would take minutes per checkpoint
+
+
+@pytest.mark.skipif(not CHECKPOINTED, reason="no learned submissions shipped")
+@pytest.mark.parametrize("results_path", CHECKPOINTED, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_a_shipped_checkpoint_replays_its_committed_units(results_path: Path, tmp_path: Path) -> None:
+    committed = json.loads(results_path.read_text())
+    config = EvalConfig(agent_path=results_path.parent / "agent.py", suite=committed["suite"]["name"],
+                        seeds=SAMPLE_SEEDS, pairs=SAMPLE_PAIRS, agent_args=committed["agent"]["agent_args"],
+                        isolated=False, out=tmp_path / "again.json")
+    again, _ = evaluate(config)
+    assert again["agent"]["sha256"] == committed["agent"]["sha256"]
+    by_key = {(u["pair"], u["seed"]): u for u in committed["units"]}
+    for unit in again["units"]:
+        old = by_key[(unit["pair"], unit["seed"])]
+        for field in ("env_seeds", "returns", "normalised_returns", "lengths"):
+            assert unit[field] == old[field], (results_path.name, unit["pair"], unit["seed"], field)
