@@ -156,3 +156,13 @@ def test_the_train_command_makes_a_submission_folder(tmp_path: Path) -> None:
     assert len(results["units"]) == 1 and results["agent"]["name"] == "rl2-run"
     unknown = CliRunner().invoke(app, ["train", "maml", "--steps", "10", "--out", str(tmp_path / "m")])
     assert unknown.exit_code == 2 and "only rl2" in " ".join(unknown.output.split())
+
+
+def test_training_curves_skip_updates_without_a_finished_episode() -> None:
+    """Early updates log NaN for episode 10 (no pair has reached it yet); the curve starts when one has."""
+    import math
+
+    from mewa_bench.reports.training_curves import smoothed
+
+    curve = smoothed([math.nan, 0.5, 0.7, math.nan, 0.9], window=2)
+    assert math.isnan(curve[0]) and curve[1:] == [0.5, 0.6, 0.7, 0.9]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -24,34 +25,40 @@ def read_metrics(path: Path) -> dict[str, list[float]]:
 
 
 def smoothed(values: list[float], window: int) -> list[float]:
-    """Trailing moving average over up to `window` points (the first points average what there is)."""
-    out, total = [], 0.0
-    for i, v in enumerate(values):
-        total += v - (values[i - window] if i >= window else 0.0)
-        out.append(total / min(i + 1, window))
+    """Trailing mean over up to `window` points, ignoring NaN (an update in which no such episode ended)."""
+    out = []
+    for i in range(len(values)):
+        recent = [v for v in values[max(0, i - window + 1): i + 1] if not math.isnan(v)]
+        out.append(sum(recent) / len(recent) if recent else math.nan)
     return out
 
 
 def plot_training_curves(runs: Mapping[str, Path], png: Path, title: str, window: int = 20) -> Path:
-    """One PNG: per run, the meta-train episode-1 (dashed) and episode-10 (solid) normalised returns,
-    smoothed over `window` updates; the gap between them is what the agent learns within a pair."""
+    """One PNG: per run, the meta-train episode-1 (dashed) and episode-10 (solid) normalised returns
+    (top) and their difference, what the agent gains within a pair (bottom), smoothed over `window` updates."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.0, 4.0), dpi=100)
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.0, 5.5), dpi=100, sharex=True,
+                                      gridspec_kw={"height_ratios": [2, 1]})
     for i, (label, path) in enumerate(sorted(runs.items())):
         m = read_metrics(path)
         steps = [s / 1e6 for s in m["env_steps"]]
+        first, last = smoothed(m[FIRST], window), smoothed(m[LAST], window)
         colour = f"C{i}"
-        ax.plot(steps, smoothed(m[LAST], window), color=colour, label=f"{label}: episode 10")
-        ax.plot(steps, smoothed(m[FIRST], window), color=colour, linestyle="--", label=f"{label}: episode 1")
-    ax.set_xlabel("env steps (millions)")
-    ax.set_ylabel("normalised return (meta-train workers)")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower right")
+        top.plot(steps, last, color=colour, label=f"{label}: episode 10")
+        top.plot(steps, first, color=colour, linestyle="--", alpha=0.7, label=f"{label}: episode 1")
+        bottom.plot(steps, [b - a for a, b in zip(first, last)], color=colour, label=label)
+    top.set_ylabel("normalised return\n(meta-train workers)")
+    top.set_title(title)
+    top.legend(fontsize=7, loc="lower right")
+    bottom.axhline(0.0, color="grey", linewidth=0.8)
+    bottom.set_ylabel("episode 10 - episode 1")
+    bottom.set_xlabel("env steps (millions)")
+    for ax in (top, bottom):
+        ax.grid(alpha=0.3)
     save_png(fig, png)
     plt.close(fig)
     return png
