@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mewa_bench.design.exact import expected_returns, plan_for
-from mewa_bench.design.optimum import known_worker_optimum, optimal_actions
+from mewa_bench.design.optimum import known_worker_optimum, optimal_actions, plan_returns
 from mewa_bench.design.policies import Policy, PolicyAgent, policy_from_name, policy_names
 from mewa_bench.game import Task, normalised_return, transition_table
 
@@ -216,3 +216,30 @@ def test_optimal_actions_achieve_the_optimum_exactly_and_by_monte_carlo() -> Non
     assert abs(returns.mean() - exact) < 4 * returns.std() / np.sqrt(len(returns))
     best_family = expected_returns(CANONICAL, None, worker[None, :], normalised=False).max()
     assert exact > best_family + 1e-3  # a worker where the step-level plan beats every t-optimal policy
+
+
+def test_plan_returns_value_a_plan_for_other_workers_by_plain_recursion() -> None:
+    """plan_returns: a plan made for one worker, followed by others, against the plain recursion."""
+    task = Task(colors=(0, 2, 3), order=(2, 0, 3), K=4, M=3, rewards=(-1.0, -0.45, -0.2), worker_blocks=(3, 5, 0), T=14)
+    table = transition_table(task)
+    plan = optimal_actions(task, [0.7, 0.35, 0.1])
+    workers = np.array([[0.7, 0.35, 0.1], [0.2, 0.9, 0.5], [1.0, 0.0, 1.0]])
+
+    def recursion(w: np.ndarray) -> float:
+        @lru_cache(maxsize=None)
+        def value(s: int, t: int) -> float:
+            if t == 0 or table.terminal[s]:
+                return 0.0
+            a = int(plan[t, s])
+            x = table.mistake_type[s, a]
+            ok, bad = int(table.next_ok[s, a]), int(table.next_mistake[s, a])
+            q_ok = table.reward[ok] + value(ok, t - 1)
+            return q_ok if x < 0 else (1 - w[x]) * q_ok + w[x] * (table.reward[bad] + value(bad, t - 1))
+        return value(0, task.T)
+
+    raw = plan_returns(task, plan, workers, normalised=False, chunk=2)
+    assert raw == pytest.approx([recursion(w) for w in workers], abs=1e-12)
+    assert raw[0] == pytest.approx(known_worker_optimum(task, workers[:1], normalised=False)[0], abs=1e-12)
+    assert raw[1] < known_worker_optimum(task, workers[1:2], normalised=False)[0] - 1e-6  # made for another worker
+    with pytest.raises(ValueError, match="steps left, states"):
+        plan_returns(task, plan[:-1], workers)

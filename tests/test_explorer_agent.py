@@ -137,18 +137,20 @@ def test_short_evaluation_adapts_on_an_overloaded_worker(tmp_path: Path) -> None
     assert scores[:, -1].mean() > 0.95
 
 
-def test_step_plan_follows_the_known_worker_optimum_of_a_pessimistic_worker(explorer: ModuleType) -> None:
-    """With much evidence on every mistake type, a later episode follows the step-level plan when it beats
-    the t-optimal family: the plan's actions are the known-worker optimum of the planning worker, which
-    sits at or above the posterior mean for every type (pessimism), and the episode-1 choice stays t-optimal."""
-    from mewa_bench.design.exact import expected_returns, structural_task
-    from mewa_bench.design.optimum import known_worker_optimum, optimal_actions
+def test_step_plan_follows_the_known_worker_optimum_of_a_planning_worker(explorer: ModuleType) -> None:
+    """With much evidence on every mistake type, a later episode follows a step-level plan when one beats
+    the t-optimal family under the posterior: its actions are the known-worker optimum of the planning
+    worker of the chosen quantile, which sits within a level of the truth, and the 0.9 planning worker
+    is at or above the posterior mean for every type (pessimism); the episode-1 choice stays t-optimal."""
+    from mewa_bench.design.exact import structural_task
+    from mewa_bench.design.optimum import optimal_actions
     from mewa_bench.game.rules import state_from_observation
     from mewa_bench.game.table import transition_table
 
-    suite = load_suite("narrow-v1")
-    task, worker = suite.tasks[0], np.array([1.0, 0.9, 0.9, 0.9])
-    agent = explorer.BayesExplorerAgent(suite="narrow-v1")
+    suite = load_suite("wide-v1")
+    pair = suite.pairs[1]
+    task, worker = suite.tasks[pair.task_index], np.array(pair.worker.w)  # (1, 1, 0, 0)
+    agent = explorer.BayesExplorerAgent(suite="wide-v1")
     env = MewaEnv(task=task, worker=worker)
     obs, _ = env.reset(seed=3)
     agent.act(obs)
@@ -159,11 +161,42 @@ def test_step_plan_follows_the_known_worker_optimum_of_a_pessimistic_worker(expl
     agent.successes = 40 - agent.mistakes
     agent.episodes_done = 1
     action = agent.act(obs)
-    planning = agent.planning_worker(task)
     rounding = agent.settings.plan_quantum / 2
-    assert np.all(planning >= agent.posterior_mean() - rounding) and np.all(np.abs(planning - worker) <= 0.15)
-    gain = known_worker_optimum(task, [planning])[0] - expected_returns(task, None, [planning]).max()
-    assert agent.planned_episode == bool(gain / expected_returns(task, None, [planning]).max() >= 0.005)
-    assert agent.planned_episode  # this worker is one where the plan pays
+    assert np.all(agent.planning_worker(task, 0.9) >= agent.posterior_mean() - rounding)
+    assert agent.planned_episode  # this worker is one where a plan pays
+    planning = agent.planning_worker(task, agent.episode_quantile)
+    assert np.all(np.abs(planning - worker) <= 0.1)
+    support, weight = agent.likely_workers(task)
+    assert agent.plan_scores(task, agent.episode_quantile, support) @ weight > (agent.model(task).values[:, support] @ weight).max()
     state = transition_table(structural_task(task)).index[state_from_observation(task, obs)]
     assert action == optimal_actions(task, planning)[task.T, state]
+
+
+def test_the_plan_is_played_only_when_it_wins_under_the_posterior(explorer: ModuleType) -> None:
+    """After one episode of w_3 mistakes (19 of 20) the planning worker is (1, 1, 0.95, 0.95); its plan beats
+    the t-optimal family there by 0.018 but scores 0 when w_2 = 1 (as on narrow-v1's (1, 1, 1, 0.95) pair):
+    the posterior check keeps the t-optimal policy; without the check the episode follows the plan."""
+    from mewa_bench.design.optimum import optimal_actions, plan_returns
+
+    task = load_suite("narrow-v1").tasks[0]
+    obs, _ = MewaEnv(task=task, worker=[1.0, 1.0, 1.0, 0.95]).reset(seed=3)
+
+    def after_one_episode(**knobs: str) -> object:
+        agent = explorer.BayesExplorerAgent(suite="narrow-v1", **knobs)
+        agent.reset_task(seed=0)
+        agent.mistakes, agent.successes = np.array([0.0, 0, 0, 19]), np.array([0.0, 0, 0, 1])
+        agent.episodes_done = 1
+        agent.act(obs)
+        return agent
+
+    checked, unchecked = after_one_episode(plan_quantiles="0.9"), after_one_episode(plan_quantiles="0.9", plan_check="0")
+    assert tuple(checked.planning_worker(task, 0.9)) == (1.0, 1.0, 0.95, 0.95)
+    assert checked.step_plan(task, 0.9)[1] >= checked.settings.plan_margin
+    assert unchecked.planned_episode and not checked.planned_episode
+    assert plan_returns(task, optimal_actions(task, [1.0, 1.0, 0.95, 0.95]), [[1.0, 1.0, 1.0, 0.95]])[0] == 0.0
+    model = checked.model(task)
+    support = np.array([int(np.flatnonzero((model.grid == w).all(axis=1))[0])
+                        for w in ([1.0, 1.0, 1.0, 0.95], [1.0, 1.0, 0.95, 0.95])])
+    expected = plan_returns(task, optimal_actions(task, [1.0, 1.0, 0.95, 0.95]), model.grid[support]) / model.denominator[support]
+    assert checked.plan_scores(task, 0.9, support) == pytest.approx(expected, abs=1e-12)
+    assert checked.plan_scores(task, 0.9, support)[1] > model.values[:, support[1]].max()  # the plan's own worker: it wins

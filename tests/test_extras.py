@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
 EXTRAS: dict[str, list[str]] = PROJECT["optional-dependencies"]
 HEAVY = {"torch", "lerobot", "sapien", "rerun-sdk", "mcap", "ray", "huggingface-hub"}
-RUNTIME_EXTRAS = {"logs", "datasets", "sapien", "train", "ray"}
+RUNTIME_EXTRAS = {"logs", "datasets", "sapien", "train", "ray", "service"}
 RUN = RunInfo("a", "0" * 64, "narrow-v1", "1" * 64, (0,), 10, "mewa/MEWA-v0", "v0", "0.1.0")
 
 

@@ -272,3 +272,15 @@ def test_the_leaderboard_command_fails_when_it_skipped_a_file(narrow: Suite, tmp
     assert strict.exit_code == 1 and "skipped" in strict.output
     assert (tmp_path / "out" / "narrow-v1.md").exists()  # the boards are written either way
     assert CliRunner().invoke(app, [*args, "--no-strict"]).exit_code == 0
+
+
+def test_an_agent_name_with_dollar_signs_is_drawn_as_text(narrow: Suite, tmp_path: Path) -> None:
+    """matplotlib would parse `$...$` in a legend label as mathtext (and fail on `$$`); a name is plain text."""
+    subs = tmp_path / "submissions"
+    for i, name in enumerate(("$$", r"cost $\frac{")):
+        folder = subs / f"agent{i}"
+        write_submission(folder, name, i)
+        write_results(folder / "results-narrow-v1.json", make_results(narrow, name, 0.8, 0.1, seed=i))
+    report = build_leaderboards(subs, tmp_path / "boards")
+    assert (tmp_path / "boards" / "narrow-v1.png").stat().st_size > 0
+    assert {e.agent for e in report.entries["narrow-v1"]} == {"$$", r"cost $\frac{"} and not report.invalid

@@ -28,20 +28,22 @@ fixed policy (tests/test_rl2.py). No checkpoint trained on the shipped suites is
 
 from __future__ import annotations
 
-import csv
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
-from mewa_bench.extras import require
+from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, keep_metrics_until,
+                                           load_checkpoint, make_meta_env, mean_or_nan, normalised_returns_paid,
+                                           save_checkpoint, settings_with, torch_module, workers_arg)
+from mewa_bench.agents.training_io import write_submission as write_submission_files
+
+__all__ = ["CHECKPOINT", "METRICS", "RL2Agent", "Settings", "gae", "settings_from", "train", "train_job", "train_run",
+           "workers_arg"]
 
 OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
-CHECKPOINT = "checkpoint.pt"
-METRICS = "metrics.csv"
 
 
 @dataclass
@@ -76,7 +78,7 @@ class Settings:
 
 def _torch() -> Any:
     """The torch module (the train extra; the datasets extra brings it too)."""
-    return require("torch", "train", "RL^2 (`mewa-bench train rl2` and its checkpoints)")
+    return torch_module("RL^2 (`mewa-bench train rl2` and its checkpoints)")
 
 
 def make_policy(hidden: int) -> Any:
@@ -106,13 +108,7 @@ def make_policy(hidden: int) -> Any:
 
 def make_env(settings: Settings) -> Any:
     """The batched meta-episode env of a run."""
-    from mewa_bench.design.suites import load_suite
-    from mewa_bench.envs.meta_episode import MetaEpisodeVectorEnv
-
-    tasks = load_suite(settings.suite).tasks
-    if settings.workers:
-        return MetaEpisodeVectorEnv(settings.num_envs, settings.episodes, task=tasks[0], workers=settings.workers)
-    return MetaEpisodeVectorEnv(settings.num_envs, settings.episodes, tasks=tasks)
+    return make_meta_env(settings.suite, settings.num_envs, settings.episodes, settings.workers)
 
 
 def train(settings: Settings, out: Path, resume: bool = False,
@@ -131,7 +127,7 @@ def train(settings: Settings, out: Path, resume: bool = False,
     optimizer = torch.optim.Adam(policy.parameters(), lr=settings.learning_rate, eps=1e-5)
     start_update = 0
     if resume and (out / CHECKPOINT).exists():
-        state = torch.load(out / CHECKPOINT, weights_only=False)
+        state = load_checkpoint(out / CHECKPOINT)
         # the run's own settings; only its length may change (to train on from a finished run)
         settings = Settings(**{**state["settings"], "total_steps": settings.total_steps})
         policy.load_state_dict(state["model"])
@@ -167,11 +163,9 @@ def train(settings: Settings, out: Path, resume: bool = False,
             buf["actions"][t], buf["logprobs"][t], buf["values"][t] = action, dist.log_prob(action), value
             buf["rewards"][t] = torch.as_tensor(learning_signal(reward, info, settings), dtype=torch.float32)
             buf["dones"][t] = done.float()
-            if "normalised_return" in info:
-                ended = info["_normalised_return"]
-                k = info["episode_in_trial"]
-                first_scores += info["normalised_return"][ended & (k == 0)].tolist()
-                last_scores += info["normalised_return"][ended & (k == settings.episodes - 1)].tolist()
+            first, last = episode_end_scores(info, settings.episodes)
+            first_scores += first
+            last_scores += last
             reset = done | dummy  # after an autoreset step comes a first observation
             dummy = done
             obs = torch.as_tensor(next_obs)
@@ -182,13 +176,14 @@ def train(settings: Settings, out: Path, resume: bool = False,
                             generator)
         steps = (update + 1) * settings.steps_per_update
         row = {"update": update + 1, "env_steps": steps, "seconds": round(time.perf_counter() - began, 3),
-               "episode_1_normalised_return": float(np.mean(first_scores)) if first_scores else float("nan"),
-               "episode_10_normalised_return": float(np.mean(last_scores)) if last_scores else float("nan"),
+               "episode_1_normalised_return": mean_or_nan(first_scores),
+               "episode_10_normalised_return": mean_or_nan(last_scores),
                **losses}
         append_metrics(out / METRICS, row)
         progress(steps, updates * settings.steps_per_update, row)
         if (update + 1) % settings.checkpoint_every == 0 or update + 1 == updates:
-            save_checkpoint(out / CHECKPOINT, policy, optimizer, settings, update + 1)
+            save_checkpoint(out / CHECKPOINT, {"model": policy.state_dict(), "optimizer": optimizer.state_dict(),
+                                               "settings": asdict(settings), "update": update + 1})
     return out / CHECKPOINT
 
 
@@ -202,9 +197,7 @@ def learning_signal(reward: np.ndarray, info: dict[str, Any], settings: Settings
     """
     if settings.step_rewards:
         return reward * settings.reward_scale
-    if "normalised_return" not in info:
-        return np.zeros_like(reward)
-    return np.where(info["_normalised_return"], info["normalised_return"], 0.0)
+    return normalised_returns_paid(reward, info)
 
 
 def gae(rewards: Any, values: Any, dones: Any, next_value: Any, settings: Settings) -> tuple[Any, Any]:
@@ -263,46 +256,6 @@ def ppo_update(policy: Any, optimizer: Any, settings: Settings, obs: Any, reset:
     return {k: round(float(np.mean(v)), 6) for k, v in stats.items()}
 
 
-def append_metrics(path: Path, row: dict[str, Any]) -> None:
-    """Append one row to the metrics CSV (header on the first), flushed at once."""
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
-
-
-def keep_metrics_until(path: Path, update: int) -> None:
-    """Drop the metrics rows of updates after `update` (atomically)."""
-    if not path.exists():
-        return
-    with path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        kept, fields = [r for r in reader if int(r["update"]) <= update], reader.fieldnames or []
-    from io import StringIO
-
-    from mewa_bench.files import write_atomic
-
-    text = StringIO()
-    writer = csv.DictWriter(text, fieldnames=fields, lineterminator="\r\n")
-    writer.writeheader()
-    writer.writerows(kept)
-    write_atomic(path, text.getvalue())
-
-
-def save_checkpoint(path: Path, policy: Any, optimizer: Any, settings: Settings, update: int) -> None:
-    """Write the checkpoint atomically (a temporary sibling, then rename)."""
-    import os
-
-    torch = _torch()
-
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save({"model": policy.state_dict(), "optimizer": optimizer.state_dict(), "settings": asdict(settings),
-                "update": update}, tmp)
-    os.replace(tmp, path)
-
-
 class RL2Agent:
     """Plays an RL^2 checkpoint under the evaluation protocol (SPEC section 6): the hidden state and the
     previous action, reward and new-episode flag are kept across the 10 episodes of a pair."""
@@ -311,7 +264,7 @@ class RL2Agent:
         torch = _torch()
 
         torch.set_num_threads(1)
-        state = torch.load(checkpoint, weights_only=False)
+        state = load_checkpoint(Path(checkpoint))
         self.settings = Settings(**state["settings"])
         self.policy = make_policy(self.settings.hidden)
         self.policy.load_state_dict(state["model"])
@@ -351,47 +304,13 @@ class RL2Agent:
 
 def settings_from(values: dict[str, Any], base: Settings | None = None) -> Settings:
     """Settings with some fields replaced (names checked)."""
-    known = set(asdict(base or Settings()))
-    unknown = set(values) - known
-    if unknown:
-        raise ValueError(f"unknown RL^2 setting(s) {sorted(unknown)}; known: {sorted(known)}")
-    return Settings(**{**asdict(base or Settings()), **values})
-
-
-def workers_arg(text: Sequence[str]) -> list[list[float]]:
-    """`--worker 0,1,1,1 --worker 1,1,1,0` as lists of floats."""
-    return [[float(v) for v in item.split(",")] for item in text]
-
-
-AGENT_FILE = '''"""RL^2 agent trained by `{command}`; plays the checkpoint beside this file.
-
-Evaluate it: `mewa-bench evaluate {folder}/agent.py --suite {suite}`.
-"""
-
-from pathlib import Path
-
-from mewa_bench.agents.rl2 import RL2Agent
-
-PRIVILEGED = False
-
-
-def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
-    return RL2Agent(checkpoint or Path(__file__).with_name("{checkpoint}"), seed=seed, greedy=greedy)
-'''
+    return settings_with(Settings, values, base, "RL^2")
 
 
 def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:
     """Make the run folder a submission: agent.py (plays checkpoint.pt) and a README with the command."""
-    from mewa_bench.files import write_atomic
-
-    agent = out / "agent.py"
-    shown = os.path.relpath(out) if Path(out).resolve().is_relative_to(Path.cwd()) else str(out)  # no machine paths
-    write_atomic(agent, AGENT_FILE.format(command=command, folder=shown, suite=settings.suite, checkpoint=CHECKPOINT))
-    readme = out / "README.md"
-    write_atomic(readme, f"# rl2 ({settings.suite}, seed {settings.seed})\n\nRL^2 (a GRU policy trained with PPO on "
-                         f"meta-episodes; `mewa_bench/agents/rl2.py`).\n\nTrained with:\n\n```\n{command}\n```\n\n"
-                         f"Settings: `{asdict(settings)}`. Training metrics: `{METRICS}`.\n")
-    return [agent, readme]
+    return write_submission_files(out, command, settings, "rl2", "RL^2", "RL2Agent",
+                                  "RL^2 (a GRU policy trained with PPO on meta-episodes; `mewa_bench/agents/rl2.py`).")
 
 
 def train_run(settings: Settings, folder: Path, resume: bool, command: str,

@@ -346,7 +346,8 @@ def generate(kind: str = typer.Argument(..., metavar="KIND", help="narrow, wide,
 
 
 @app.command()
-def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2 (VariBAD, PEARL and MAML are not implemented yet)."),
+def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pearl or maml "
+                                                              "(mewa_bench.agents.training_io.ALGORITHMS)."),
           suite: str = typer.Option("narrow-v1", help="Suite whose tasks and meta-train workers it trains on."),
           seed: list[int] = typer.Option([1], "--seed", help="Training seed (repeatable: one run per seed; "
                                                            "runs are deterministic given it)."),
@@ -356,22 +357,27 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2 (VariBAD, PE
           resume: bool = typer.Option(False, metavar="", help="Continue from the run folder's last checkpoint."),
           worker: list[str] = typer.Option([], "--worker", help="Train on this worker only, e.g. 0,1,1,1 "
                                                                 "(repeatable; default: the suite's meta-train distribution)."),
+          rerun: bool = typer.Option(False, "--rerun", metavar="", help="Also log the metrics as Rerun scalars to "
+                                                           "<run folder>/metrics.rrd as they come (`mewa-bench view` "
+                                                           "it; with --ray, written when the seed finishes)."),
           ray: bool = typer.Option(False, "--ray", metavar="", help="One Ray task per seed on a local Ray instance."),
           ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP)) -> None:
     """Train a learned meta-RL baseline; each run folder becomes a submission (agent.py, checkpoint, metrics)."""
     import shlex
 
-    if algo != "rl2":
-        raise typer.BadParameter(f"unknown algorithm {algo!r}: only rl2 is implemented so far", param_hint="ALGO")
-    from mewa_bench.agents import rl2
+    from mewa_bench.agents.training_io import UnknownAlgorithm, load_algorithm, workers_arg
 
+    try:
+        module = load_algorithm(algo)
+    except UnknownAlgorithm as e:
+        raise typer.BadParameter(str(e), param_hint="ALGO") from None
     address = _ray_option(ray, ray_address)
     jobs = []
     for s in dict.fromkeys(seed):  # each seed once, in the order given
         folder = (out / f"seed{s}" if len(seed) > 1 else out) if out else Path("runs") / f"{algo}-{suite}-seed{s}"
         try:
-            settings = rl2.settings_from({"suite": suite, "seed": s, "total_steps": steps,
-                                          "workers": rl2.workers_arg(worker)})
+            settings = module.settings_from({"suite": suite, "seed": s, "total_steps": steps,
+                                             "workers": workers_arg(worker)})
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--worker") from None
         command = " ".join(["mewa-bench train", algo, "--suite", shlex.quote(suite), "--seed", str(s), "--steps",
@@ -384,22 +390,35 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2 (VariBAD, PE
 
             task = bar.add_task(f"{algo} on {suite}: seeds on Ray", total=len(jobs))
             with session(address):
-                written = _or_exit(lambda: ray_map(rl2.train_job, jobs, on_done=lambda _: bar.advance(task)))
+                written = _or_exit(lambda: ray_map(module.train_job, jobs, on_done=lambda _: bar.advance(task)))
+            for (settings, folder, _, _), paths in zip(jobs, written) if rerun else ():
+                scalars = _or_exit(lambda: _training_scalars(folder, f"{algo} on {suite}, seed {settings.seed}", True))
+                scalars.close()
+                paths.append(scalars.path)
         else:
             written = []
             for settings, folder, _, command in jobs:
                 task = bar.add_task(f"{algo} on {suite}, seed {settings.seed}", total=steps)
+                scalars = _or_exit(lambda: _training_scalars(folder, f"{algo} on {suite}, seed {settings.seed}",
+                                                             resume)) if rerun else None
 
-                def show(done: int, total: int, row: dict, task=task, s=settings.seed) -> None:
+                def show(done: int, total: int, row: dict, task=task, s=settings.seed, scalars=scalars) -> None:
                     bar.update(task, completed=done, total=total, description=(
                         f"{algo} on {suite}, seed {s}: episode 1 {row['episode_1_normalised_return']:.3f}, "
                         f"episode 10 {row['episode_10_normalised_return']:.3f}"))
+                    if scalars is not None:
+                        scalars.log(row)
 
-                written.append(_or_exit(lambda: rl2.train_run(settings, folder, resume, command, progress=show)))
+                try:
+                    paths = _or_exit(lambda: module.train_run(settings, folder, resume, command, progress=show))
+                finally:
+                    if scalars is not None:
+                        scalars.close()
+                written.append([*paths, scalars.path] if scalars is not None else paths)
     from mewa_bench.reports.training_curves import plot_training_curves
 
     for (settings, folder, _, _), paths in zip(jobs, written):
-        curve = plot_training_curves({f"seed {settings.seed}": folder / rl2.METRICS}, folder / "training_curve.png",
+        curve = plot_training_curves({f"seed {settings.seed}": folder / module.METRICS}, folder / "training_curve.png",
                                      f"{algo} on {suite}, seed {settings.seed}")
         for path in [*paths, curve]:
             console.print(f"wrote {path}")
@@ -486,12 +505,18 @@ def datasets_info(name: str = typer.Argument(..., metavar="NAME", help="Dataset 
 def datasets_download(source: str = typer.Argument(..., metavar="SOURCE", help="Catalog name, archive URL, or Hugging Face Hub repo id."),
                       dir: Path = typer.Option(Path("mewa-datasets"), "--dir", help="Where datasets are unpacked."),
                       sha256: str = typer.Option(None, help="Expected sha256 of an archive URL not in the catalog."),
-                      catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
+                      catalog: Path = typer.Option(None, help=CATALOG_HELP),
+                      server: str = typer.Option(None, help="A mewa-bench server's URL: download from its catalog "
+                                                            "(an interrupted download resumes).")) -> None:
     """Download, verify (size, sha256, episode and frame counts) and unpack a dataset atomically."""
     from mewa_bench.datasets.catalog import DatasetError, load_catalog
     from mewa_bench.datasets.downloader import download
 
-    if catalog is not None:
+    if server is not None:
+        from mewa_bench.service.client import server_catalog
+
+        content = _or_exit(server_catalog, server)  # its errors are RuntimeErrors with the server's reason
+    elif catalog is not None:
         content = _or_exit(load_catalog, catalog)
     else:
         try:
@@ -534,6 +559,22 @@ def _print_error(error: Exception) -> None:
     console.print(f"[red]error:[/red] {escape(str(error))}")
 
 
+def _training_scalars(folder: Path, name: str, replay: bool):
+    """A run folder's Rerun training scalars (metrics.rrd), with the rows already in its metrics file when
+    `replay` (a resumed run, or a run trained on Ray)."""
+    import csv
+
+    from mewa_bench.agents.training_io import METRICS
+    from mewa_bench.logs.training_scalars import FILE, TrainingScalars
+
+    scalars = TrainingScalars(folder / FILE, name)
+    if replay and (folder / METRICS).exists():
+        with (folder / METRICS).open(newline="") as f:
+            for row in csv.DictReader(f):
+                scalars.log(row)
+    return scalars
+
+
 def _or_exit(call, *args):
     """Call, turning a library error (bad suite, catalog, download, missing extra...) into a message and exit 1."""
     try:
@@ -541,6 +582,13 @@ def _or_exit(call, *args):
     except (ValueError, RuntimeError, OSError, MissingExtra) as e:
         _print_error(e)
         raise typer.Exit(1) from None
+
+
+from mewa_bench.cli.service_commands import serve_app, status, submit  # noqa: E402 (the service's commands)
+
+app.add_typer(serve_app, name="serve")
+app.command()(submit)
+app.command()(status)
 
 
 def main() -> None:

@@ -5,6 +5,10 @@ Hugging Face Hub dataset repo id (`user/repo`). Archives are streamed to a temp 
 destination, checked against the expected size and sha256, unpacked into a temp directory (members
 with absolute paths, `..` or links are refused), checked to be a LeRobot dataset and only then
 renamed to `dest_dir/<name>`.
+
+An archive with a known sha256 served over http(s) by a server that accepts byte ranges (a
+mewa-bench server does) resumes where it stopped: after a dropped connection in the same call, and
+in a later call, from the partial file kept in the download cache (`partial_path`).
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ from mewa_bench.extras import MissingExtra, require
 Progress = Callable[[int, int | None], None]  # (bytes done, total bytes or None when unknown)
 CHUNK = 1 << 20
 TIMEOUT = 60.0
+RESUMES = 3  # Range requests after a dropped connection, in one call
+CACHE_ENV = "MEWA_CACHE_DIR"
 INFO_FILE = Path("meta") / "info.json"
 
 
@@ -125,49 +131,110 @@ def _temp_dir(dest_dir: Path, name: str, kind: str) -> Iterator[Path]:
 def _download_archive(src: Source, dest_dir: Path, progress: Progress | None) -> Downloaded:
     """Archive URL: stream, verify, unpack, check, install."""
     assert src.url is not None
+    resumable = src.sha256 is not None and src.url.startswith(("http://", "https://"))
     with _temp_dir(dest_dir, src.name, "download") as work:
-        archive = work / "archive.tar.gz"
-        size, digest = fetch(src.url, archive, progress)
-        if src.size is not None and size != src.size:
-            raise DatasetError(f"{src.url}: downloaded {size} bytes, the catalog says {src.size} "
-                               "(truncated or changed archive)")
-        if src.sha256 is not None and digest != src.sha256:
-            raise DatasetError(f"{src.url}: sha256 mismatch: got {digest}, expected {src.sha256} "
-                               "(corrupted or changed archive)")
+        archive = partial_path(src.sha256) if resumable else work / "archive.tar.gz"
+        size, digest = fetch(src.url, archive, progress, resume=resumable)  # a resumable partial stays on failure
+        try:
+            if src.size is not None and size != src.size:
+                raise DatasetError(f"{src.url}: downloaded {size} bytes, the catalog says {src.size} "
+                                   "(truncated or changed archive)")
+            if src.sha256 is not None and digest != src.sha256:
+                raise DatasetError(f"{src.url}: sha256 mismatch: got {digest}, expected {src.sha256} "
+                                   "(corrupted or changed archive)")
+        except DatasetError:
+            archive.unlink()  # complete but wrong: the next call starts again
+            raise
         unpacked = work / "unpacked"
-        extract_archive(archive, unpacked, src.url)
-        archive.unlink()
+        try:
+            extract_archive(archive, unpacked, src.url)
+        finally:
+            archive.unlink()
         root = dataset_root(unpacked, src.url)
         check_dataset(root, src, src.url)
         path = install(root, dest_dir / src.name)
     return Downloaded(src.name, path, src.url, size, digest, verified=src.sha256 is not None)
 
 
-def fetch(url: str, out: Path, progress: Progress | None = None) -> tuple[int, str]:
-    """Stream `url` to `out`; returns (bytes, sha256). A short or failed transfer raises `DatasetError`."""
-    h, done = hashlib.sha256(), 0
-    try:
-        with urllib.request.urlopen(url, timeout=TIMEOUT) as response, open(out, "wb") as f:
-            length = response.headers.get("Content-Length")
-            total = int(length) if length is not None and length.isdigit() else None
-            if progress:
-                progress(0, total)
-            while chunk := response.read(CHUNK):
-                f.write(chunk)
+def partial_path(sha256: str) -> Path:
+    """Where a resumable download of the archive with this sha256 is kept while it is incomplete."""
+    cache = os.environ.get(CACHE_ENV) or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "mewa-bench"
+    folder = Path(cache) / "downloads"
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / f"{sha256}.part"
+
+
+class _Interrupted(Exception):
+    """A transfer that stopped part-way; `ranges`: the server accepts Range requests, so it can resume."""
+
+    def __init__(self, message: str, ranges: bool) -> None:
+        super().__init__(message)
+        self.ranges = ranges
+
+
+def fetch(url: str, out: Path, progress: Progress | None = None, resume: bool = False) -> tuple[int, str]:
+    """Stream `url` to `out`; returns (bytes, sha256). A short or failed transfer raises `DatasetError`.
+
+    With `resume`, bytes already in `out` are kept and the rest is asked for with an HTTP Range
+    request, also after a dropped connection (RESUMES times); a partial `out` is left for a later
+    call only if the server accepts ranges.
+    """
+    out = Path(out)
+    for attempt in range(RESUMES + 1):
+        try:
+            return _fetch_once(url, out, progress, resume and out.exists())
+        except _Interrupted as e:
+            if not (resume and e.ranges) or attempt == RESUMES:
+                if resume and not e.ranges:
+                    out.unlink(missing_ok=True)
+                raise DatasetError(str(e)) from None
+    raise AssertionError("unreachable")
+
+
+def _fetch_once(url: str, out: Path, progress: Progress | None, continued: bool) -> tuple[int, str]:
+    """One HTTP(S) or file request: all of `url`, or with `continued` the bytes after those in `out`."""
+    h, start = hashlib.sha256(), out.stat().st_size if continued else 0
+    if start:
+        with open(out, "rb") as f:
+            while chunk := f.read(CHUNK):
                 h.update(chunk)
-                done += len(chunk)
-                if progress:
-                    progress(done, total)
+    request = urllib.request.Request(url, headers={"Range": f"bytes={start}-"} if start else {})
+    done, total, ranges = start, None, False
+    try:
+        with urllib.request.urlopen(request, timeout=TIMEOUT) as response:
+            ranges = response.headers.get("Accept-Ranges", "").lower() == "bytes" or response.status == 206
+            if start and not _continues_at(response, start):
+                start = done = 0  # the server sent the whole file: start again
+                h = hashlib.sha256()
+            length = response.headers.get("Content-Length")
+            total = start + int(length) if length is not None and length.isdigit() else None
+            if progress:
+                progress(done, total)
+            with open(out, "ab" if start else "wb") as f:
+                while chunk := response.read(CHUNK):
+                    f.write(chunk)
+                    h.update(chunk)
+                    done += len(chunk)
+                    if progress:
+                        progress(done, total)
     except urllib.error.HTTPError as e:
+        if e.code == 416 and start:  # nothing after the bytes we have: the size and sha256 checks judge them
+            return start, h.hexdigest()
         raise DatasetError(f"{url}: server answered HTTP {e.code} {e.reason}") from None
     except urllib.error.URLError as e:
         raise DatasetError(f"{url}: cannot connect: {e.reason}") from None
     except (OSError, ValueError, http.client.HTTPException) as e:  # timeouts, resets, IncompleteRead
-        raise DatasetError(f"{url}: transfer failed after {done} bytes: {e!r}") from None
+        raise _Interrupted(f"{url}: transfer failed after {done} bytes: {e!r}", ranges) from None
     # http.client returns a short body without error when the server closes early: check ourselves
     if total is not None and done != total:
-        raise DatasetError(f"{url}: transfer ended after {done} of {total} bytes (connection closed early)")
+        raise _Interrupted(f"{url}: transfer ended after {done} of {total} bytes (connection closed early)", ranges)
     return done, h.hexdigest()
+
+
+def _continues_at(response: Any, start: int) -> bool:
+    """A 206 whose Content-Range starts where our bytes end."""
+    content_range = response.headers.get("Content-Range", "")
+    return response.status == 206 and content_range.startswith(f"bytes {start}-")
 
 
 def _member_problem(member: tarfile.TarInfo) -> str | None:

@@ -10,6 +10,7 @@ non-adaptive gap (docs/suites.md).
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Callable
@@ -22,7 +23,7 @@ from mewa_bench.design.curate import (BEST_FIXED, DECIMALS, GAP, MIN_BEST_RETURN
                                       mean_absolute_deviation, ratios_to_best)
 from mewa_bench.design.policies import RANDOM, RANDOM_TASK_SPECIFIC, policy_names
 from mewa_bench.design.references import round_floats, summarise
-from mewa_bench.design.suites import SUITE_FORMAT_VERSION
+from mewa_bench.design.suites import SUITE_FORMAT_VERSION, canonical_json
 from mewa_bench.game.distributions import (family_names, meta_test_candidates, overloaded_family, paper_family,
                                            worker_families)
 from mewa_bench.game.task import Task, default_sigma
@@ -60,6 +61,10 @@ class SuiteSpec:
     min_best_return: float = MIN_BEST_RETURN
     phase2: str = BEST_FIXED
     min_distance: float = 0.0
+    # hidden suites (service.hidden): curate from the grid without these workers, then from a random
+    # fraction of what is left, drawn from `seed` and the task (the shipped suites keep every candidate)
+    excluded_workers: tuple[tuple[float, ...], ...] = ()
+    candidate_fraction: float = 1.0
 
 
 SPECS = {
@@ -147,10 +152,30 @@ def task_entry(task: Task, design: AverageWorkerDesign, mad_here: float, curatio
     return entry
 
 
+def allowed_candidates(task: Task, candidates: np.ndarray, spec: SuiteSpec) -> np.ndarray:
+    """The candidate workers `spec` lets curation choose from, still in lexicographic order.
+
+    Without `spec.excluded_workers`; then, if `spec.candidate_fraction` < 1, that fraction of them drawn
+    from a generator seeded by `spec.seed` and the task's parameters (not the order tasks are designed in).
+    """
+    if spec.excluded_workers:
+        excluded = {tuple(np.round(w, 6)) for w in spec.excluded_workers if len(w) == candidates.shape[1]}
+        candidates = candidates[[tuple(np.round(c, 6)) not in excluded for c in candidates]]
+    if spec.candidate_fraction >= 1.0:
+        return candidates
+    if spec.seed is None or not 0.0 < spec.candidate_fraction:
+        raise ValueError(f"{spec.name}: a candidate fraction of {spec.candidate_fraction} needs a seed and a fraction > 0")
+    parameters = {k: v for k, v in task.to_dict().items() if k != "name"}
+    key = int.from_bytes(hashlib.sha256(canonical_json(parameters).encode()).digest()[:8], "little")
+    rng = np.random.default_rng([spec.seed, key])
+    keep = max(1, round(spec.candidate_fraction * len(candidates)))
+    return candidates[np.sort(rng.choice(len(candidates), size=keep, replace=False))]
+
+
 def curate_task(task: Task, task_index: int, spec: SuiteSpec, progress: Progress) -> tuple[dict, list[dict]]:
     """Curated workers of one task and every reference value of its pairs."""
     names = policy_names(task.N, baselines=False)
-    candidates = meta_test_candidates(task, GRID_STEP)
+    candidates = allowed_candidates(task, meta_test_candidates(task, GRID_STEP), spec)
     progress(f"{task.name}: exact returns of {len(names)} policies on {len(candidates):,} candidate workers")
     values = exact.expected_returns(task, names, candidates).T  # [C, P]
     cur = curate(values, spec.cap, spec.min_best_return, spec.phase2, candidates, spec.min_distance)
@@ -192,9 +217,18 @@ class Candidate:
     family_mads: dict[str, float]
 
 
-def design_candidate(raw: Task, kind: str, progress: Progress = lambda msg: None) -> Candidate:
+def suite_spec(kind: str | SuiteSpec) -> SuiteSpec:
+    """The spec of suite `kind` (a key of SPECS), or `kind` itself if it is a spec (e.g. a hidden suite's)."""
+    if isinstance(kind, SuiteSpec):
+        return kind
+    if kind not in SPECS:
+        raise ValueError(f"unknown suite kind {kind!r}: expected one of {', '.join(SPECS)}")
+    return SPECS[kind]
+
+
+def design_candidate(raw: Task, kind: str | SuiteSpec, progress: Progress = lambda msg: None) -> Candidate:
     """Design and curate one sampled task (independent of every other task: safe to run in parallel)."""
-    spec = SPECS[kind]
+    spec = suite_spec(kind)
     progress(f"{raw.name}: Eq. 1 average worker and rewards for N={raw.N}, M={raw.M}")
     task, design = designed(raw, spec.families)
     info, pairs = curate_task(task, -1, spec, progress)
@@ -208,24 +242,24 @@ def renamed(task: Task, index: int) -> Task:
     return task if task.name == name else Task.from_dict({**task.to_dict(), "name": name})
 
 
-MapTasks = Callable[[Callable[..., Candidate], list[Task], str], list[Candidate]]
+MapTasks = Callable[[Callable[..., Candidate], list[Task], str | SuiteSpec], list[Candidate]]
 
 
-def in_order(design: Callable[..., Candidate], raws: list[Task], kind: str, progress: Progress) -> list[Candidate]:
+def in_order(design: Callable[..., Candidate], raws: list[Task], kind: str | SuiteSpec,
+             progress: Progress) -> list[Candidate]:
     """The default way to design candidates: one after the other, in this process."""
     return [design(raw, kind, progress) for raw in raws]
 
 
-def generate_suite(kind: str, progress: Progress = lambda msg: None, map_tasks: MapTasks | None = None) -> dict[str, Any]:
-    """Build the content of suite `kind` (a key of SPECS: narrow, wide, narrow-v2, wide-v2), without its hash.
+def generate_suite(kind: str | SuiteSpec, progress: Progress = lambda msg: None,
+                   map_tasks: MapTasks | None = None) -> dict[str, Any]:
+    """Build the content of suite `kind` (a key of SPECS: narrow, wide, narrow-v2, wide-v2, or a SuiteSpec), without its hash.
 
     Candidate tasks are sampled in a fixed order and designed as many at a time as the suite still
     needs; `map_tasks(design_candidate, raws, kind)` may design them in parallel (e.g. as Ray tasks):
     the suite is the same bytes either way.
     """
-    if kind not in SPECS:
-        raise ValueError(f"unknown suite kind {kind!r}: expected one of {', '.join(SPECS)}")
-    spec = SPECS[kind]
+    spec = suite_spec(kind)
     rng = np.random.default_rng(spec.seed)
     tasks: list[dict] = []
     pairs: list[dict] = []
@@ -254,7 +288,8 @@ def generate_suite(kind: str, progress: Progress = lambda msg: None, map_tasks: 
             if len(tasks) == spec.n_tasks:
                 break
     generator = {
-        "command": f"mewa-bench generate {kind}", "generator_version": GENERATOR_VERSION, "seed": spec.seed,
+        "command": f"mewa-bench generate {kind}" if isinstance(kind, str) else None,
+        "generator_version": GENERATOR_VERSION, "seed": spec.seed,
         "n_tasks": spec.n_tasks, "cap": spec.cap, "grid_step": GRID_STEP, "deltas": list(DELTAS),
         "epsilons": list(EPSILONS), "p_threshold": P_THRESHOLD, "min_best_return": spec.min_best_return,
         "decimals": DECIMALS, "adaptive_ratio": ADAPTIVE_RATIO, "tasks_sampled": samples,

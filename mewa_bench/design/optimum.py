@@ -99,6 +99,40 @@ def optimal_actions(task: Task, worker: np.ndarray | Sequence[float]) -> np.ndar
     return out
 
 
+def _plan_block(task: Task, layout: _Layout, workers: np.ndarray, plan: np.ndarray) -> np.ndarray:
+    """Raw expected return of following `plan` ([T + 1, S] in layout order) for a block of workers -> [Wc]."""
+    kind = np.full(len(layout.ok), -1, dtype=np.int64)
+    kind[layout.branching] = layout.mistake_type
+    w_rows = np.vstack([workers.T, np.zeros((1, len(workers)))])  # row -1: no mistake possible
+    arrival = np.append(np.asarray(task.rewards, dtype=np.float64), 0.0)[layout.progress][:, None]
+    after = np.repeat(arrival, len(workers), axis=1)
+    value = np.zeros(len(workers))
+    for t in range(1, task.T + 1):
+        n_active = layout.active[t]
+        rows = np.arange(n_active) * NUM_COLORS + plan[t, :n_active]
+        q = after[layout.ok[rows]]
+        q += w_rows[kind[rows]] * (after[layout.bad[rows]] - q)
+        value = q[0]
+        after[:n_active] = q + arrival[:n_active]
+    return value
+
+
+def plan_returns(task: Task, plan: np.ndarray, workers: np.ndarray | Sequence, normalised: bool = True,
+                 chunk: int = CHUNK) -> np.ndarray:
+    """Expected (normalised) return of following a step-level plan (an action [T + 1, S] by steps left and
+    table state, as `optimal_actions` gives) for each worker, [W]."""
+    arr = as_workers(workers, task.N)
+    table = transition_table(structural_task(task))
+    if plan.shape != (task.T + 1, table.n_states):
+        raise ValueError(f"plan has shape {plan.shape}, expected {(task.T + 1, table.n_states)} (steps left, states)")
+    layout = _layout(table, task.T)
+    by_position = plan[:, np.argsort(state_depths(table), kind="stable")].astype(np.int64)
+    raw = np.zeros(len(arr))
+    for start in range(0, len(arr), chunk):
+        raw[start : start + chunk] = _plan_block(task, layout, arr[start : start + chunk], by_position)
+    return normalised_return(task, raw) if normalised else raw
+
+
 def known_worker_optimum(task: Task, workers: np.ndarray | Sequence, normalised: bool = True,
                     chunk: int = CHUNK) -> np.ndarray:
     """Optimal expected (normalised) return for each worker when the worker is known, [W]."""

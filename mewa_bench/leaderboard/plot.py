@@ -30,7 +30,8 @@ def plot_curves(board: Board, path: Path) -> None:
         curve = entry.scores.curve
         x = np.arange(1, len(curve) + 1)
         color = colors[i % len(colors)]
-        label = f"{entry.agent} (privileged)" if entry.privileged else entry.agent
+        name = entry.agent.replace("$", r"\$")  # an agent's name is text, never mathtext
+        label = f"{name} (privileged)" if entry.privileged else name
         ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=color, ls=":" if entry.privileged else "-",
                 label=label)
         ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=color, alpha=0.2, lw=0)

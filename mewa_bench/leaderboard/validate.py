@@ -101,6 +101,19 @@ def _without_prefix(message: str, path: Path) -> str:
 
 def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
     """All leaderboard checks of a structurally valid results dict, then the entry."""
+    suite, seeds, units = check_run(results, suites)
+    scores = verified_scores(units, suite, results["scores"])
+    agent = results["agent"]
+    _check_agent_file(path, agent)
+    return Entry(suite=suite.name, agent=str(agent["name"]), path=path, privileged=agent.get("privileged") is True,
+                 scores=scores, seeds=seeds, date=finished_date(results),
+                 package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""))
+
+
+def check_run(results: dict[str, Any], suites: SuiteCache, expected_seeds: tuple[int, ...] | None = None
+              ) -> tuple[Suite, tuple[int, ...], list[dict[str, Any]]]:
+    """The checks that need no scoring: complete, a shipped suite with its exact hash, this protocol, the
+    expected seeds (default: the protocol's), every unit exactly once; returns the suite, seeds and sorted units."""
     if results["complete"] is not True:
         raise InvalidResults("the run is incomplete (`complete` is not true)")
     suite = suites.get(results["suite"]["name"])
@@ -114,17 +127,14 @@ def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
         raise InvalidResults(f"episodes_per_pair is {results['episodes_per_pair']!r}; the protocol plays "
                              f"{EPISODES_PER_PAIR} per pair")
     seeds = _seeds(results["seeds"])
-    expected = default_seeds(suite.name)
-    if seeds != expected:
+    expected = default_seeds(suite.name) if expected_seeds is None else tuple(expected_seeds)
+    if seeds != expected and expected_seeds is None:
         raise InvalidResults(f"ranked runs on {suite.name} use the protocol's default seeds 0..{len(expected) - 1}; this run used "
                              f"{len(seeds)} seed(s) {_short(seeds)}: re-run without --seeds")
-    units = _covering_units(results["units"], suite, seeds)
-    scores = _verified_scores(units, suite, results["scores"])
-    agent = results["agent"]
-    _check_agent_file(path, agent)
-    return Entry(suite=suite.name, agent=str(agent["name"]), path=path, privileged=agent.get("privileged") is True,
-                 scores=scores, seeds=seeds, date=finished_date(results),
-                 package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""))
+    if seeds != expected:
+        raise InvalidResults(f"runs on {suite.name} are ranked here with the seeds {_short(expected)}; this run used "
+                             f"{len(seeds)} seed(s) {_short(seeds)}: re-run with --seeds {','.join(map(str, expected))}")
+    return suite, seeds, _covering_units(results["units"], suite, seeds)
 
 
 SUBMISSION_FILES = ("agent.py", "README.md")  # besides its results files
@@ -193,7 +203,7 @@ def _listing(keys: list[tuple[int, int]]) -> str:
     return shown + (f", ... ({len(keys)} in all)" if len(keys) > _SHOWN else "")
 
 
-def _verified_scores(units: list[dict[str, Any]], suite: Suite, stored: dict[str, Any]) -> Scores:
+def verified_scores(units: list[dict[str, Any]], suite: Suite, stored: dict[str, Any]) -> Scores:
     """Recompute the scores from the units and reject files whose stored numbers disagree."""
     normalised = np.array([u["normalised_returns"] for u in units], dtype=np.float64)
     unit_scores = np.array([u["scores"] for u in units], dtype=np.float64)

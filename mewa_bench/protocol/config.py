@@ -14,7 +14,7 @@ from typing import Any
 
 from mewa_bench.design.suites import Suite
 from mewa_bench.envs.mewa_env import DEFAULT_IMAGE_SIZE
-from mewa_bench.protocol.isolation import DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT
+from mewa_bench.protocol.isolation import DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, Launcher
 
 EPISODES_PER_PAIR = 10
 DEFAULT_LANES = 64
@@ -24,8 +24,8 @@ OTHER_SUITES_SEED_COUNT = 50  # suites of your own: no power analysis behind thi
 
 
 def suite_family(suite_name: str) -> str:
-    """'narrow-v2' -> 'narrow': the name without its version suffix."""
-    return re.sub(r"-v\d+$", "", suite_name)
+    """'narrow-v2' -> 'narrow': the name without its version suffix (a hidden suite's too: 'narrow-v2-hidden')."""
+    return re.sub(r"-v\d+(-hidden)?$", "", suite_name)
 
 
 def default_seeds(suite_name: str) -> tuple[int, ...]:
@@ -57,6 +57,7 @@ class EvalConfig:
     mode: str = "vector"  # or "sapien": agents observe {"state": float32[18], "image": uint8[H, W, 3]}
     image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE
     ray: str | None = None  # run units as Ray tasks: "local" (a Ray instance on this machine) or a cluster address
+    launcher: Launcher | None = None  # start the agent process in a sandbox (service.sandbox); None: a plain child
 
 
 def rollout_config(policy: str, agent_args: dict[str, str] | None = None, privileged: bool = False,

@@ -15,6 +15,11 @@ objects, `lanes` of them, each built from the file as the agent would be alone. 
 sends one call per lane in one round trip, so the per-step cost of crossing the process boundary
 is shared by as many units as there are lanes. In the child every call has its own time limit
 (an interval timer), the parent waiting for the whole batch only as a backstop.
+
+Sandboxes (`mewa_bench.service.sandbox`): a `Launcher` starts the agent process inside one (a
+command prefix such as bwrap, its own environment, code run before the agent loads); a rule the
+sandbox sees the agent break (`report_violation`) fails the call under way with kind "sandbox",
+even if the agent catches the error it got.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import functools
 import inspect
 import traceback
 import weakref
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Callable, Protocol, Self, Sequence
@@ -46,7 +52,7 @@ from mewa_bench.protocol.agent import OPTIONAL_METHODS, AgentLoadError, Transiti
 DEFAULT_TIME_LIMIT = 10.0
 DEFAULT_LOAD_TIME_LIMIT = 60.0
 DEFAULT_MEMORY_LIMIT = 4 << 30
-ERROR_KINDS = ("load", "exception", "invalid_action", "timeout", "memory", "crash")
+ERROR_KINDS = ("load", "exception", "invalid_action", "timeout", "memory", "crash", "sandbox")
 
 _TRACEBACK_FRAMES = 3
 _MAX_EXCEPTION_TEXT = 2000
@@ -77,6 +83,21 @@ class _CallTimeout(BaseException):
 
 
 Call = tuple[int, int, tuple]  # (lane, operation, arguments) of one call in a batch
+
+
+@dataclass(frozen=True)
+class Launcher:
+    """How a sandbox starts the agent process: `prefix` + [python, "-c", `entry`, pipe fds, memory limit].
+
+    `entry` is the code the child runs (it must end by calling `_child_main()`), `environment` the
+    whole environment it gets. Exit codes above 128 count as deaths by signal (code - 128), the
+    convention of bwrap and shells, which stand between the parent and the agent process.
+    """
+
+    prefix: tuple[str, ...]
+    entry: str
+    environment: tuple[tuple[str, str], ...]
+    python: str = sys.executable
 
 
 class AgentRunner(Protocol):
@@ -125,16 +146,20 @@ def make_agent_runner(path: str | Path, observation_space: Any, action_space: sp
                       agent_args: dict[str, str] | None = None, checkpoint: str | None = None, *,
                       isolated: bool = True, time_limit: float | None = DEFAULT_TIME_LIMIT,
                       load_time_limit: float | None = DEFAULT_LOAD_TIME_LIMIT,
-                      memory_limit: int | None = DEFAULT_MEMORY_LIMIT, lanes: int = 1) -> AgentRunner:
+                      memory_limit: int | None = DEFAULT_MEMORY_LIMIT, lanes: int = 1,
+                      launcher: Launcher | None = None) -> AgentRunner:
     """Load the agent file at `path` into an IsolatedAgent, or an InProcessAgent if not `isolated`.
 
     `lanes` independent agent objects are built (see `batch`). A file that does not load raises
-    AgentError of kind "load" with AgentLoadError's message. The limits apply to the isolated
-    runner only.
+    AgentError of kind "load" with AgentLoadError's message. The limits and the `launcher` (a
+    sandbox) apply to the isolated runner only.
     """
     if isolated:
         return IsolatedAgent(path, observation_space, action_space, agent_args, checkpoint, time_limit=time_limit,
-                             load_time_limit=load_time_limit, memory_limit=memory_limit, lanes=lanes)
+                             load_time_limit=load_time_limit, memory_limit=memory_limit, lanes=lanes,
+                             launcher=launcher)
+    if launcher is not None:
+        raise ValueError("a sandboxed agent (launcher) must run isolated, not in-process")
     try:
         agents = [load_agent(path, observation_space, action_space, agent_args, checkpoint) for _ in range(lanes)]
     except AgentLoadError as exc:
@@ -328,13 +353,14 @@ class IsolatedAgent(_FailureTracking):
     message). Each call must return within `time_limit` seconds; loading and the first call after it
     get `load_time_limit` each (None: no limit). The child's address space is capped at `memory_limit`
     bytes (RLIMIT_AS; None for no cap). A failing call kills and reaps the child and raises AgentError;
-    the runner is then closed.
+    the runner is then closed. A `launcher` starts the child inside a sandbox.
     """
 
     def __init__(self, path: str | Path, observation_space: Any, action_space: spaces.Discrete,
                  agent_args: dict[str, str] | None = None, checkpoint: str | None = None, *,
                  time_limit: float | None = DEFAULT_TIME_LIMIT, load_time_limit: float | None = DEFAULT_LOAD_TIME_LIMIT,
-                 memory_limit: int | None = DEFAULT_MEMORY_LIMIT, lanes: int = 1) -> None:
+                 memory_limit: int | None = DEFAULT_MEMORY_LIMIT, lanes: int = 1,
+                 launcher: Launcher | None = None) -> None:
         if lanes < 1:
             raise ValueError(f"lanes must be >= 1, got {lanes}")
         self.name = Path(path).name
@@ -343,12 +369,16 @@ class IsolatedAgent(_FailureTracking):
         self._time_limit = time_limit
         self._next_time_limit = load_time_limit
         self._memory_limit = memory_limit
+        self._launcher = launcher
+        prefix, python, entry = ((), sys.executable, _CHILD_COMMAND) if launcher is None else \
+            (launcher.prefix, launcher.python, launcher.entry)
+        environment = _child_environment() if launcher is None else dict(launcher.environment)
         parent_read, child_write = os.pipe()
         child_read, parent_write = os.pipe()
         try:
             self._process = subprocess.Popen(
-                [sys.executable, "-c", _CHILD_COMMAND, str(child_read), str(child_write), str(memory_limit or 0)],
-                pass_fds=(child_read, child_write), stdin=subprocess.DEVNULL, env=_child_environment())
+                [*prefix, python, "-c", entry, str(child_read), str(child_write), str(memory_limit or 0)],
+                pass_fds=(child_read, child_write), stdin=subprocess.DEVNULL, env=environment)
         except BaseException:
             for fd in (parent_read, child_write, child_read, parent_write):
                 os.close(fd)
@@ -469,6 +499,8 @@ class IsolatedAgent(_FailureTracking):
             code = self._process.wait(_EXIT_WAIT_SECONDS)
         except subprocess.TimeoutExpired:
             return "it closed its pipe but kept running"
+        if self._launcher is not None and code > 128:
+            code = 128 - code  # the sandbox's wrapper reports the agent process's death by signal N as 128 + N
         if code >= 0:
             return f"exit code {code}"
         name = signal.Signals(-code).name if -code in signal.valid_signals() else str(-code)
@@ -559,6 +591,20 @@ def _no_op(*args: Any) -> None:
     return None
 
 
+_VIOLATIONS: list[str] = []  # in the agent process: the sandbox rules the agent was caught breaking
+
+
+def report_violation(message: str) -> None:
+    """In a sandboxed agent process: the agent broke a sandbox rule (`message` says which); the call under
+    way then fails with kind "sandbox", whatever the agent does with the error it got."""
+    _VIOLATIONS.append(message)
+
+
+def _violation(name: str, index: int | None = None) -> AgentError:
+    """The error of the first sandbox rule the agent broke (call only when _VIOLATIONS is not empty)."""
+    return AgentError("sandbox", f"agent {name}: {_VIOLATIONS[0]}", index)
+
+
 def _child_main() -> None:
     """The agent process: load the agent, then answer requests until the parent closes the pipe."""
     read_fd, write_fd, memory_limit = (int(arg) for arg in sys.argv[1:4])
@@ -576,7 +622,10 @@ def _child_main() -> None:
     try:
         agents = [load_agent(path, observation_space, action_space, agent_args, checkpoint) for _ in range(lanes)]
     except AgentLoadError as exc:
-        _write_frame(write_fd, _error_reply(AgentError("load", str(exc))))
+        _write_frame(write_fd, _error_reply(_violation(name) if _VIOLATIONS else AgentError("load", str(exc))))
+        return
+    if _VIOLATIONS:  # the agent caught the error its sandbox raised
+        _write_frame(write_fd, _error_reply(_violation(name)))
         return
     calls = [_AgentCalls(agent, _num_actions(action_space), name, memory_limit or None) for agent in agents]
     signal.signal(signal.SIGALRM, _raise_call_timeout)
@@ -593,7 +642,13 @@ def _answer(calls: list[_AgentCalls], request: tuple, name: str) -> bytes:
     """Carry out one request on the agent (lane 0) or a batch of calls on the lanes; the reply's bytes."""
     operation = request[0]
     if operation != _BATCH:
-        return calls[0].answer(operation, request[1:])
+        try:
+            reply = calls[0].answer(operation, request[1:])
+        except AgentError as err:
+            raise (_violation(name) if _VIOLATIONS else err) from None
+        if _VIOLATIONS:
+            raise _violation(name)
+        return reply
     _, batch, observations, previous, time_limit = request
     tokens = []
     for index, (lane, call, args) in enumerate(batch):
@@ -607,9 +662,11 @@ def _answer(calls: list[_AgentCalls], request: tuple, name: str) -> bytes:
             raise AgentError("timeout", f"agent {name}: {CALL_NAMES.get(call, 'a call')} did not finish within the "
                                         f"time limit of {time_limit:g} s; the agent process was killed", index) from None
         except AgentError as err:
-            raise AgentError(err.kind, str(err), index) from None
+            raise (_violation(name, index) if _VIOLATIONS else AgentError(err.kind, str(err), index)) from None
         finally:
             signal.setitimer(signal.ITIMER_REAL, 0)
+        if _VIOLATIONS:
+            raise _violation(name, index)
     return _BATCHED + b",".join(tokens)
 
 

@@ -132,7 +132,7 @@ class _LanePlayer:
             try:
                 self.runner = make_agent_runner(c.agent_path, env.observation_space, env.action_space, c.agent_args,
                                                 c.checkpoint, isolated=c.isolated, time_limit=c.time_limit,
-                                                memory_limit=c.memory_limit, lanes=n_lanes)
+                                                memory_limit=c.memory_limit, lanes=n_lanes, launcher=c.launcher)
             except AgentError as e:
                 raise EvaluationError(e.kind, f"agent {c.agent_path}: {e}") from None
         n_lanes = len(self.envs)

@@ -25,13 +25,17 @@ t-optimal policy family.
   myopic best (the highest posterior expected score).
 - Within an episode, after every trial (`replan=myopic`, the default), it switches to the myopic
   best policy if that beats the current one by `switch_margin`, keeping the run counters.
-- Step-level plan (from the second episode on, `step_plan=1`): the *planning worker* takes, per
-  mistake type, the posterior `plan_quantile` (0.9) quantile of w_x, so types it has seen little of
-  count as error-prone. If the known-worker optimal plan for that worker
-  (`mewa_bench.design.optimum.optimal_actions`, by state and steps left) beats the best t-optimal
-  policy for it by `plan_margin` in score, the episode follows the plan instead of a t-optimal
-  policy; the planning worker is recomputed after every trial, so the plan adapts within the
-  episode. Plans are cached per process by the rounded worker (`plan_quantum`, at most 256 MB).
+- Step-level plans (from the second episode on, `step_plan=1`): a *planning worker* takes, per
+  mistake type, a posterior quantile of w_x (`plan_quantiles`: 0.5 and 0.9; at 0.9 types it has
+  seen little of count as error-prone). For each, the known-worker optimal plan
+  (`mewa_bench.design.optimum.optimal_actions`, an action by state and steps left) is a candidate
+  if it beats the best t-optimal policy for its planning worker by `plan_margin` in score. A plan
+  is fragile (made for w_2 = 0.95 it can score 0 when w_2 = 1), so each candidate is judged by its
+  exact score (`optimum.plan_returns`) on the most likely grid workers (`plan_mass` of the
+  posterior, at most `plan_support` of them): the episode follows the best candidate if its
+  posterior expected score is above the best t-optimal policy's (`plan_check=1`). The planning
+  worker is recomputed after every trial, so the plan adapts within the episode. Plans and their
+  scores are cached per process by the rounded worker (`plan_quantum`, at most 256 MB).
 
 Exact returns of every policy at every grid worker come from `mewa_bench.design.exact` once per
 task and are shared by all agents of a process. Randomness: only `np.random.default_rng([seed,
@@ -163,7 +167,8 @@ class TaskModel:
         self.log_not_w = np.log(np.maximum(1.0 - self.grid, TINY))
         returns = expected_returns(task, self.policies, self.grid)  # [P, G]
         # the protocol's score: return / the best t-optimal return for the worker (curated workers: >= 0.1)
-        self.values = returns / np.maximum(returns.max(axis=0), MIN_BEST) if ratio else returns
+        self.denominator = np.maximum(returns.max(axis=0), MIN_BEST) if ratio else np.ones(len(self.grid))
+        self.values = returns / self.denominator
         self.best_values = self.values.max(axis=0)  # [G]: what knowing the worker would give
         self.chain = replay_chain(task, self.policies)
         coarse = np.round(np.round(self.grid / COARSE) * COARSE, 12)  # rounding keeps the monotone order
@@ -224,9 +229,12 @@ class Settings:
     episodes: int = EPISODES_PER_PAIR
     step_plan: int = 1  # 0: t-optimal policies only
     plan_from: int = 1  # first episode (0-based) that may be played by the step-level plan
-    plan_quantile: float = 0.9  # the planning worker: this posterior quantile of each w_x
-    plan_margin: float = 0.005  # the plan must beat the best t-optimal policy by this much (score)
+    plan_quantiles: str = "0.5,0.9"  # candidate planning workers: these posterior quantiles of each w_x
+    plan_margin: float = 0.005  # a plan must beat the best t-optimal policy for its planning worker by this much (score)
     plan_quantum: float = 0.025  # planning workers are rounded to this grid (plans are cached by it)
+    plan_check: int = 1  # 1: play the plan only if its posterior expected score beats the myopic best's
+    plan_mass: float = 0.99  # posterior mass of the grid workers the check evaluates the plan on
+    plan_support: int = 64  # at most this many of them (the most likely)
 
 
 def posterior_of(log_post: np.ndarray) -> np.ndarray:
@@ -310,8 +318,9 @@ class BayesExplorerAgent:
         self.posterior_task: Any = None
         self.episode_starting = True
         self.planned_episode = False
+        self.episode_quantile = 0.0  # the planning worker's quantile of a planned episode
         self.steps_done = 0
-        self.planning: tuple[Any, np.ndarray] | None = None  # (task, planning worker) until the next trial
+        self.planning: dict[tuple[int, float], np.ndarray] = {}  # planning workers until the next trial
 
     def act(self, obs: Any) -> int:
         """The chosen policy's action for the candidate task's state."""
@@ -343,7 +352,7 @@ class BayesExplorerAgent:
         why = self.task_belief.update(transition)
         observed = why is not None and why.mistake_type >= 0
         if observed:
-            self.planning = None
+            self.planning = {}
             (self.mistakes if why.mistaken else self.successes)[why.mistake_type] += 1
             if self.log_post is not None and self.task_belief.task is self.posterior_task:
                 model = self.model(self.posterior_task)
@@ -359,54 +368,97 @@ class BayesExplorerAgent:
             self.choose_policy(reset_memory=False)
 
     def step_plan_pays(self) -> bool:
-        """Whether this episode follows the step-level plan: its gain over the best t-optimal policy
-        at the planning worker is at least `plan_margin`."""
+        """Whether this episode follows a step-level plan, and for which planning worker: the candidate
+        (one per `plan_quantiles`) with the highest posterior expected score, if that is above the best
+        t-optimal policy's and its gain at its own planning worker is at least `plan_margin`."""
         s = self.settings
         if not s.step_plan or self.episodes_done < s.plan_from or self.task_belief.task is None:
             return False
-        return self.step_plan(self.task_belief.task)[1] >= s.plan_margin
+        task = self.task_belief.task
+        quantiles = [q for q in self.quantiles() if self.step_plan(task, q)[1] >= s.plan_margin]
+        if not quantiles:
+            return False
+        if not s.plan_check:
+            self.episode_quantile = quantiles[-1]
+            return True
+        support, weight = self.likely_workers(task)
+        scores = [float(self.plan_scores(task, q, support) @ weight) for q in quantiles]
+        best = int(np.argmax(scores))
+        self.episode_quantile = quantiles[best]
+        return scores[best] > float((self.model(task).values[:, support] @ weight).max())
 
-    def step_plan(self, task: Any) -> tuple[np.ndarray, float]:
-        """The known-worker optimal actions [T + 1, S] for the planning worker, and their score gain
-        over the best t-optimal policy for that worker; cached per process by the rounded worker."""
+    def quantiles(self) -> list[float]:
+        """The candidate planning workers' posterior quantiles, ascending."""
+        return sorted(float(q) for q in self.settings.plan_quantiles.split(","))
+
+    def likely_workers(self, task: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The most likely grid workers (`plan_mass` of the posterior, at most `plan_support`) and their
+        renormalised posterior weights: where a plan is judged.
+
+        A plan is made for one planning worker and can fail outright on workers close to it (a plan for
+        w_2 = 0.95 scores 0 when w_2 = 1), so it is weighed on the workers the agent believes in.
+        """
+        s = self.settings
+        post = posterior_of(self.current_log_posterior())
+        order = np.argsort(-post, kind="stable")
+        count = int(np.searchsorted(np.cumsum(post[order]), s.plan_mass) + 1)
+        support = order[: min(count, s.plan_support, len(order))]
+        return support, post[support] / post[support].sum()
+
+    def plan_scores(self, task: Any, quantile: float, support: np.ndarray) -> np.ndarray:
+        """A step-level plan's score at the grid workers `support` (exact; cached with the plan)."""
+        from mewa_bench.design.optimum import plan_returns
+
+        model = self.model(task)
+        actions, _, known = self.step_plan(task, quantile, with_scores=True)
+        missing = [int(g) for g in support if int(g) not in known]
+        if missing:
+            scores = plan_returns(task, actions, model.grid[missing]) / model.denominator[missing]
+            known.update(zip(missing, scores.tolist()))
+        return np.array([known[int(g)] for g in support])
+
+    def step_plan(self, task: Any, quantile: float, with_scores: bool = False) -> tuple:
+        """The known-worker optimal actions [T + 1, S] for the planning worker of `quantile` and their
+        score gain over the best t-optimal policy for that worker (and, `with_scores`, the plan's scores
+        known so far by grid worker); cached per process by the model and the rounded worker."""
         from mewa_bench.design.exact import expected_returns
         from mewa_bench.design.optimum import known_worker_optimum, optimal_actions
 
-        worker = self.planning_worker(task)
-        key = (task.key(), tuple(worker))
+        worker = self.planning_worker(task, quantile)
+        key = (self.model_key(task), tuple(worker))  # the scores are by the model's grid
         plans = _shared_plans()
         if key in plans:
             plans.move_to_end(key)
-            return plans[key]
-        best_t = float(expected_returns(task, self.model(task).policies, [worker]).max())
-        gain = (float(known_worker_optimum(task, [worker])[0]) - best_t) / max(best_t, MIN_BEST)
-        plans[key] = (optimal_actions(task, worker), gain)
-        while sum(actions.nbytes for actions, _ in plans.values()) > PLAN_CACHE_BYTES:
-            plans.popitem(last=False)  # least recently used
-        return plans[key]
+        else:
+            best_t = float(expected_returns(task, self.model(task).policies, [worker]).max())
+            gain = (float(known_worker_optimum(task, [worker])[0]) - best_t) / max(best_t, MIN_BEST)
+            plans[key] = (optimal_actions(task, worker), gain, {})
+            while sum(actions.nbytes + 64 * len(known) for actions, _, known in plans.values()) > PLAN_CACHE_BYTES:
+                plans.popitem(last=False)  # least recently used
+        return plans[key] if with_scores else plans[key][:2]
 
     def planned_action(self, task: Any, state: Any) -> int:
-        """The step-level plan's action in `state` with T - steps_done + 1 steps left."""
+        """The episode's step-level plan's action in `state` with T - steps_done + 1 steps left."""
         from mewa_bench.design.exact import structural_task
         from mewa_bench.game.table import transition_table
 
         table = transition_table(structural_task(task))  # cached per task by the game layer
         left = max(task.T - self.steps_done + 1, 1)
-        return int(self.step_plan(task)[0][left, table.index[state]])
+        return int(self.step_plan(task, self.episode_quantile)[0][left, table.index[state]])
 
-    def planning_worker(self, task: Any) -> np.ndarray:
-        """Per component, the posterior `plan_quantile` quantile of w_x (pessimistic: components the
-        agent has seen little of count as error-prone), rounded to `plan_quantum`; kept until the next trial."""
-        if self.planning is not None and self.planning[0] is task:
-            return self.planning[1]
+    def planning_worker(self, task: Any, quantile: float) -> np.ndarray:
+        """Per component, the posterior `quantile` of w_x (at 0.9, pessimistic: components the agent has
+        seen little of count as error-prone), rounded to `plan_quantum`; kept until the next trial."""
+        key = (id(task), quantile)
+        if key in self.planning:
+            return self.planning[key]
         model, s = self.model(task), self.settings
         post = posterior_of(self.current_log_posterior())
         worker = np.array([model.levels[x][np.searchsorted(np.cumsum(np.bincount(model.level_of[x], weights=post)),
-                                                           s.plan_quantile - 1e-12).clip(max=len(model.levels[x]) - 1)]
+                                                           quantile - 1e-12).clip(max=len(model.levels[x]) - 1)]
                            for x in range(task.N)])
-        worker = np.round(np.round(worker / s.plan_quantum) * s.plan_quantum, 6)
-        self.planning = (task, worker)
-        return worker
+        self.planning[key] = np.round(np.round(worker / s.plan_quantum) * s.plan_quantum, 6)
+        return self.planning[key]
 
     def end_episode(self) -> None:
         """Count the episode; the next act() starts another of the same pair."""
@@ -444,10 +496,15 @@ class BayesExplorerAgent:
         """The task's model, built once per process (about 1 s for N = 4)."""
         shared = _shared_models()
         s = self.settings
-        key = (self.suites, task.key(), s.grid_step, s.floor, s.ratio)
+        key = self.model_key(task)
         if key not in shared:
             shared[key] = TaskModel(task, self.listings[task.key()], s.grid_step, s.floor, bool(s.ratio))
         return shared[key]
+
+    def model_key(self, task: Any) -> tuple:
+        """What a task model depends on."""
+        s = self.settings
+        return (self.suites, task.key(), s.grid_step, s.floor, s.ratio)
 
     def posterior_mean(self) -> np.ndarray | None:
         """The posterior mean worker for the candidate task (None if no candidate is left)."""

@@ -1,0 +1,209 @@
+"""What the learned baselines share (issue 12): the algorithm registry, the meta-train env, metrics and
+checkpoint files, and the submission folder a run becomes. No torch at import time.
+
+An algorithm is a module listed in `ALGORITHMS` that exposes (what `mewa-bench train` calls):
+
+- `Settings`: a dataclass of everything a run depends on, saved in its checkpoint; it has at least
+  `suite`, `seed`, `total_steps` and `workers` (list of worker vectors; empty: the suite's
+  meta-train distribution).
+- `settings_from(values: dict, base=None) -> Settings`: fields replaced, unknown names a ValueError
+  naming them (`settings_with` below does it for any dataclass).
+- `train_run(settings, folder, resume, command, progress=...) -> list[Path]`: train (or resume from
+  the folder's last checkpoint) and make the folder a submission (`write_submission`); the files
+  written. `progress(env_steps_done, env_steps_total, row)` is called after every update with the
+  metrics row just written.
+- `train_job(job) -> list[Path]`: `train_run(*job)` for one (settings, folder, resume, command),
+  a module-level function so that it can run as a Ray task.
+- `METRICS`: the metrics file name in the run folder. Every row has `update`, `env_steps` and the
+  meta-train `episode_1_normalised_return` / `episode_10_normalised_return` (NaN when no such
+  episode ended during the update), which the progress bar and the training curve read.
+- An agent class `XAgent(checkpoint, seed=0, greedy=False)` with the protocol's `reset_task`, `act`,
+  `observe`, `end_episode`, named in the submission's agent.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import importlib.util
+import os
+from dataclasses import asdict, fields, is_dataclass
+from io import StringIO
+from pathlib import Path
+from types import ModuleType
+from collections.abc import Sequence
+from typing import Any, TypeVar
+
+import numpy as np
+
+from mewa_bench.extras import require
+
+CHECKPOINT = "checkpoint.pt"
+METRICS = "metrics.csv"
+ALGORITHMS = {  # name -> module (one file per algorithm)
+    "rl2": "mewa_bench.agents.rl2",
+    "varibad": "mewa_bench.agents.varibad",
+    "pearl": "mewa_bench.agents.pearl",
+    "maml": "mewa_bench.agents.maml",
+}
+
+S = TypeVar("S")
+
+
+class UnknownAlgorithm(ValueError):
+    """An algorithm name that is not in the registry, or whose module is not there (yet)."""
+
+
+def available_algorithms() -> list[str]:
+    """The registered algorithms whose module exists, in registry order."""
+    return [name for name, module in ALGORITHMS.items() if importlib.util.find_spec(module) is not None]
+
+
+def load_algorithm(name: str) -> ModuleType:
+    """The module of algorithm `name`; UnknownAlgorithm listing those available otherwise."""
+    if name not in available_algorithms():
+        names = available_algorithms()
+        listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+        raise UnknownAlgorithm(f"unknown algorithm {name!r}: only {listed} {'is' if len(names) == 1 else 'are'} "
+                               f"available")
+    return importlib.import_module(ALGORITHMS[name])
+
+
+def torch_module(feature: str) -> Any:
+    """The torch module (the train extra; the datasets extra brings it too)."""
+    return require("torch", "train", feature)
+
+
+def settings_with(cls: type[S], values: dict[str, Any], base: S | None = None, name: str = "") -> S:
+    """`cls` settings with some fields replaced (names checked against the dataclass)."""
+    assert is_dataclass(cls)
+    start = asdict(base) if base is not None else asdict(cls())
+    unknown = set(values) - {f.name for f in fields(cls)}
+    if unknown:
+        raise ValueError(f"unknown {name or cls.__name__} setting(s) {sorted(unknown)}; known: {sorted(start)}")
+    return cls(**{**start, **values})
+
+
+def workers_arg(text: Sequence[str]) -> list[list[float]]:
+    """`--worker 0,1,1,1 --worker 1,1,1,0` as lists of floats (ValueError naming a bad one)."""
+    out = []
+    for item in text:
+        try:
+            out.append([float(v) for v in item.split(",")])
+        except ValueError:
+            raise ValueError(f"worker {item!r} is not comma-separated numbers") from None
+    return out
+
+
+def make_meta_env(suite: str, num_envs: int, episodes: int, workers: Sequence[Sequence[float]] = ()) -> Any:
+    """The batched meta-episode env of a run: the suite's tasks with meta-train workers drawn from each
+    task's own distribution (never a curated test worker), or the suite's first task with `workers`."""
+    from mewa_bench.design.suites import load_suite
+    from mewa_bench.envs.meta_episode import MetaEpisodeVectorEnv
+
+    tasks = load_suite(suite).tasks
+    if workers:
+        return MetaEpisodeVectorEnv(num_envs, episodes, task=tasks[0], workers=[list(w) for w in workers])
+    return MetaEpisodeVectorEnv(num_envs, episodes, tasks=tasks)
+
+
+def episode_end_scores(info: dict[str, Any], episodes: int) -> tuple[list[float], list[float]]:
+    """Normalised returns of the first and of the last inner episodes that ended on this step."""
+    if "normalised_return" not in info:
+        return [], []
+    ended, k = info["_normalised_return"], info["episode_in_trial"]
+    scores = info["normalised_return"]
+    return scores[ended & (k == 0)].tolist(), scores[ended & (k == episodes - 1)].tolist()
+
+
+def normalised_returns_paid(reward: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+    """Each inner episode's normalised return on the step that ends it, 0 elsewhere (see rl2's
+    `learning_signal` for why the learned baselines learn from this by default)."""
+    if "normalised_return" not in info:
+        return np.zeros_like(reward)
+    return np.where(info["_normalised_return"], info["normalised_return"], 0.0)
+
+
+def mean_or_nan(values: list[float]) -> float:
+    """Mean of a list, NaN when it is empty (an update in which no such episode ended)."""
+    return float(np.mean(values)) if values else float("nan")
+
+
+def append_metrics(path: Path, row: dict[str, Any]) -> None:
+    """Append one row to the metrics CSV (header on the first), flushed at once."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def keep_metrics_until(path: Path, update: int) -> None:
+    """Drop the metrics rows of updates after `update` (atomically): a resumed run redoes them."""
+    from mewa_bench.files import write_atomic
+
+    if not path.exists():
+        return
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        kept, names = [r for r in reader if int(r["update"]) <= update], reader.fieldnames or []
+    text = StringIO()
+    writer = csv.DictWriter(text, fieldnames=names, lineterminator="\r\n")
+    writer.writeheader()
+    writer.writerows(kept)
+    write_atomic(path, text.getvalue())
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """`torch.save(state)` atomically (a temporary sibling, then rename)."""
+    torch = torch_module("saving a checkpoint")
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint written by `save_checkpoint` (a clear error when the file is missing)."""
+    torch = torch_module("loading a checkpoint")
+    if not Path(path).exists():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    return torch.load(path, weights_only=False)
+
+
+AGENT_FILE = '''"""{title} agent trained by `{command}`; plays the checkpoint beside this file.
+
+Evaluate it: `mewa-bench evaluate {folder}/agent.py --suite {suite}`.
+"""
+
+from pathlib import Path
+
+from {module} import {agent_class}
+
+PRIVILEGED = False
+
+
+def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
+    return {agent_class}(checkpoint or Path(__file__).with_name("{checkpoint}"), seed=seed, greedy=greedy)
+'''
+
+
+def write_submission(out: Path, command: str, settings: Any, algorithm: str, title: str, agent_class: str,
+                     description: str) -> list[Path]:
+    """Make a run folder a submission: agent.py (plays CHECKPOINT with `agent_class` of the algorithm's
+    module) and a README with the exact command, the settings and where the metrics are."""
+    from mewa_bench.files import write_atomic
+
+    agent = out / "agent.py"
+    shown = os.path.relpath(out) if Path(out).resolve().is_relative_to(Path.cwd()) else str(out)  # no machine paths
+    write_atomic(agent, AGENT_FILE.format(title=title, command=command, folder=shown, suite=settings.suite,
+                                          module=ALGORITHMS[algorithm], agent_class=agent_class,
+                                          checkpoint=CHECKPOINT))
+    readme = out / "README.md"
+    write_atomic(readme, f"# {algorithm} ({settings.suite}, seed {settings.seed})\n\n{description}\n\nTrained with:"
+                         f"\n\n```\n{command}\n```\n\nSettings: `{asdict(settings)}`. Training metrics: `{METRICS}`.\n")
+    return [agent, readme]

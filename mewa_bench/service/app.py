@@ -1,0 +1,93 @@
+"""The app factory: a FastAPI app over one service instance's settings and database.
+
+Building the app applies the schema migrations (a no-op when they are applied). The OpenAPI
+description is at /openapi.json (and browsable at /docs). Every error is JSON
+`{"error": code, "detail": message}`, including FastAPI's own request validation errors.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mewa_bench.extras import require
+from mewa_bench.service.settings import Settings
+
+MULTIPART_SLACK = 64 * 1024  # form boundaries and fields around the uploaded files
+DESCRIPTION = """The MEWA meta-RL benchmark as a service: suites, leaderboards (public and hidden test suites),
+datasets, and submissions of results files (re-scored from their episodes) or agents (evaluated in a sandbox).
+Submitting needs an API token: `Authorization: Bearer <token>`."""
+
+
+def body_limits(settings: Settings):
+    """The largest request body per path (the parts are checked one by one in the routes)."""
+    limits = settings.limits
+
+    def limit_of(path: str) -> int | None:
+        """The body limit of a path."""
+        if path == "/api/submissions/results":
+            return limits.results_bytes + MULTIPART_SLACK
+        if path == "/api/submissions/agent":
+            return limits.agent_bytes + limits.checkpoint_bytes + MULTIPART_SLACK
+        return MULTIPART_SLACK
+
+    return limit_of
+
+
+def create_app(settings: Settings) -> Any:
+    """The ASGI app (FastAPI) of a service instance."""
+    require("fastapi", "service", "mewa-bench serve")
+    require("sqlalchemy", "service", "mewa-bench serve")
+    from fastapi import FastAPI, Request
+    from fastapi.exceptions import RequestValidationError
+    from fastapi.responses import JSONResponse
+    from starlette.exceptions import HTTPException
+
+    from mewa_bench import __version__
+    from mewa_bench.leaderboard.validate import SuiteCache
+    from mewa_bench.service.db import make_engine, migrate, schema_revision, session_factory
+    from mewa_bench.service.errors import ApiError
+    from mewa_bench.service.jobs import queue_counts
+    from mewa_bench.service.limits import BodySizeLimit, RateLimiter
+    from mewa_bench.service.routes import datasets, leaderboards, submissions, suites
+    from mewa_bench.service import web  # the pages; included first, so its / and /leaderboards/<board> win
+
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    engine = make_engine(settings.database_url)
+    migrate(engine)
+    app = FastAPI(title="MEWA benchmark service", version=__version__, description=DESCRIPTION)
+    app.state.settings = settings
+    app.state.engine = engine
+    app.state.sessions = session_factory(engine)
+    app.state.rate = RateLimiter()
+    app.state.suites = SuiteCache()
+
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, error: ApiError) -> JSONResponse:
+        """An ApiError as its JSON answer."""
+        return JSONResponse(error.body(), status_code=error.status, headers=error.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
+        """A request FastAPI could not parse (a missing form field...) as a 400 naming the fields."""
+        problems = "; ".join(f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg')}" for e in error.errors())
+        return JSONResponse({"error": "invalid_request", "detail": f"malformed request: {problems}"}, status_code=400)
+
+    @app.exception_handler(HTTPException)
+    async def http_error(request: Request, error: HTTPException) -> JSONResponse:
+        """Starlette's own errors (unknown path, wrong method) in the same JSON form."""
+        code = {404: "not_found", 405: "method_not_allowed"}.get(error.status_code, "http_error")
+        return JSONResponse({"error": code, "detail": str(error.detail)}, status_code=error.status_code,
+                            headers=getattr(error, "headers", None))
+
+    @app.get("/api/health", tags=["service"], summary="Is the service up")
+    def health() -> dict[str, Any]:
+        """The database, its schema revision and the job queue."""
+        with app.state.sessions() as s:
+            counts = queue_counts(s)
+        return {"status": "ok", "version": __version__, "database": engine.dialect.name,
+                "schema": schema_revision(engine), "jobs": counts}
+
+    for module in (web, suites, leaderboards, datasets, submissions):
+        app.include_router(module.router)
+    app.add_middleware(BodySizeLimit, limit_of=body_limits(settings))
+    return app

@@ -1,0 +1,107 @@
+"""Leaderboards from the database: one per public suite, one per hidden suite, ranked by mean score.
+
+Rows are the leaderboard's own (`leaderboard.board.Row`, stored when the entry was scored), ranked
+the way `mewa-bench leaderboard` ranks them (privileged agents unranked, equal means share a rank),
+with the suite's exact reference lines and each agent's adaptation curve s_1..s_10 with its CIs.
+A hidden board shows scores only: never the hidden suite, its pairs or the runs' units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
+from mewa_bench.leaderboard.board import AGENT, PRIVILEGED, REFERENCE, Row, competition_ranks, reference_rows
+from mewa_bench.protocol.config import EPISODES_PER_PAIR
+from mewa_bench.service.settings import HIDDEN_SUFFIX, Settings
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session
+
+KIND_ORDER = {AGENT: 0, PRIVILEGED: 1, REFERENCE: 2}
+
+
+def hidden_boards(settings: Settings) -> tuple[str, ...]:
+    """The hidden boards of this server (none when hidden evaluation is off)."""
+    if not settings.hidden:
+        return ()
+    from mewa_bench.service.hidden import HIDDEN_SUITES
+
+    return tuple(HIDDEN_SUITES)
+
+
+def board_names(settings: Settings) -> list[tuple[str, bool]]:
+    """(board, hidden) for every board, public first."""
+    return [(name, False) for name in ALL_SUITES] + [(name, True) for name in hidden_boards(settings)]
+
+
+def hidden_twin(board: str) -> str:
+    """narrow-v2-hidden -> narrow-v2."""
+    return board.removesuffix(HIDDEN_SUFFIX)
+
+
+@lru_cache(maxsize=None)
+def _public_suite(name: str) -> Suite:
+    """A shipped suite, loaded once."""
+    return load_suite(name)
+
+
+def _hidden_suite(settings: Settings, board: str) -> Suite | None:
+    """A hidden board's suite if it was generated already (the API never generates one)."""
+    path = settings.data_dir / "hidden" / f"{board}.json"
+    return _load_cached(path, path.stat().st_mtime_ns) if path.exists() else None
+
+
+@lru_cache(maxsize=16)
+def _load_cached(path: Path, mtime: int) -> Suite:
+    """A hidden suite file, loaded again only when it changes."""
+    return load_suite(path)
+
+
+def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | None:
+    """A board as JSON (None: no such board)."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import BoardEntry
+
+    boards = dict(board_names(settings))
+    if name not in boards:
+        return None
+    hidden = boards[name]
+    suite = _hidden_suite(settings, name) if hidden else _public_suite(name)
+    entries = session.scalars(select(BoardEntry).where(BoardEntry.board == name)
+                              .order_by(BoardEntry.mean.desc(), BoardEntry.agent_name, BoardEntry.id)).all()
+    rows: list[dict[str, Any]] = []
+    ranks = iter(competition_ranks([e.mean for e in entries if not e.privileged]))
+    for e in entries:
+        row = Row(**json.loads(e.row))
+        row = dataclasses.replace(row, rank=None if e.privileged else next(ranks), file=f"/api/submissions/{e.submission_id}")
+        scores = json.loads(e.scores)
+        rows.append({**dataclasses.asdict(row), "submission_id": e.submission_id,
+                     "curve": [p["mean"] for p in scores["curve"]], "curve_low": [p["low"] for p in scores["curve"]],
+                     "curve_high": [p["high"] for p in scores["curve"]]})
+    references = reference_rows(suite) if suite is not None else []
+    for r in references:
+        rows.append({**dataclasses.asdict(r), "submission_id": None, "curve": [r.mean] * EPISODES_PER_PAIR,
+                     "curve_low": None, "curve_high": None})  # fixed policies: a flat curve
+    rows.sort(key=lambda r: (-r["mean"], KIND_ORDER[r["kind"]], r["name"]))
+    return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
+            "suite": None if hidden or suite is None else {"name": suite.name, "sha256": suite.sha256},
+            "seeds": len(settings.seeds_for(name)), "entries": len(entries), "rows": rows}
+
+
+def boards_index(session: Session, settings: Settings) -> list[dict[str, Any]]:
+    """Every board with its number of entries and its best mean score."""
+    from sqlalchemy import func, select
+
+    from mewa_bench.service.models import BoardEntry
+
+    counts = {b: (n, best) for b, n, best in session.execute(
+        select(BoardEntry.board, func.count(), func.max(BoardEntry.mean)).group_by(BoardEntry.board))}
+    return [{"board": name, "hidden": hidden, "entries": counts.get(name, (0, None))[0],
+             "best_mean": counts.get(name, (0, None))[1], "url": f"/api/leaderboards/{name}",
+             "html": f"/leaderboards/{name}"} for name, hidden in board_names(settings)]

@@ -1,0 +1,147 @@
+"""The job queue, persisted in the database: states, leases, attempts.
+
+A worker claims a job with one conditional UPDATE whose candidate row comes from a sub-select:
+`... FOR UPDATE SKIP LOCKED` on PostgreSQL (concurrent workers skip each other's rows), a plain
+sub-select on SQLite (whose write lock makes the statement atomic). A claim sets a lease that the
+worker renews; a job whose lease expired (its worker crashed, was killed, or hung) is claimable
+again, up to `max_attempts` claims, after which it fails with the reason. Every state change after
+the claim is conditional on the lease owner, so a worker that lost its lease can change nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from mewa_bench.service.models import DONE, FAILED, QUEUED, REJECTED, RUNNING, Job
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
+
+
+@dataclass(frozen=True)
+class Claimed:
+    """A job as its worker sees it after claiming it."""
+
+    id: int
+    submission_id: int
+    kind: str
+    board: str
+    hidden: bool
+    seeds: tuple[int, ...]
+    attempts: int
+    max_attempts: int
+
+
+def add_job(session: Session, submission_id: int, kind: str, board: str, hidden: bool, seeds: tuple[int, ...],
+            max_attempts: int) -> Job:
+    """Queue a job (in the caller's transaction, with its submission)."""
+    job = Job(submission_id=submission_id, kind=kind, board=board, hidden=hidden, seeds=json.dumps(list(seeds)),
+              state=QUEUED, attempts=0, max_attempts=max_attempts, units_done=0, units_total=0, created=time.time())
+    session.add(job)
+    return job
+
+
+def _claimable(table, now: float):
+    """Queued, or running with an expired lease."""
+    from sqlalchemy import and_, or_
+
+    return or_(table.state == QUEUED, and_(table.state == RUNNING, table.lease_expires < now))
+
+
+def give_up_expired(sessions: sessionmaker[Session], now: float | None = None) -> int:
+    """Fail the jobs whose lease expired after their last allowed attempt; returns how many."""
+    from sqlalchemy import update
+
+    now = time.time() if now is None else now
+    with sessions() as session, session.begin():
+        result = session.execute(
+            update(Job).where(Job.state == RUNNING, Job.lease_expires < now, Job.attempts >= Job.max_attempts)
+            .values(state=FAILED, finished=now, lease_owner=None, lease_expires=None,
+                    error="the service gave up: the worker running this job stopped (crashed, killed or lost its "
+                          "lease) on each of its attempts"))
+        return result.rowcount
+
+
+def claim(sessions: sessionmaker[Session], owner: str, lease_seconds: float, now: float | None = None) -> Claimed | None:
+    """Claim the oldest claimable job, or None (first come, first served: a flood of results uploads
+    cannot starve agent evaluations)."""
+    from sqlalchemy import select, update
+    from sqlalchemy.orm import aliased
+
+    now = time.time() if now is None else now
+    candidates = aliased(Job)
+    candidate = (select(candidates.id).where(_claimable(candidates, now), candidates.attempts < candidates.max_attempts)
+                 .order_by(candidates.id).limit(1)
+                 .with_for_update(skip_locked=True).scalar_subquery())
+    with sessions() as session, session.begin():
+        job_id = session.execute(
+            update(Job).where(Job.id == candidate, _claimable(Job, now))
+            .values(state=RUNNING, lease_owner=owner, lease_expires=now + lease_seconds, attempts=Job.attempts + 1,
+                    started=now, error=None)
+            .returning(Job.id)).scalar()
+        if job_id is None:
+            return None
+        job = session.get(Job, job_id)
+        return Claimed(job.id, job.submission_id, job.kind, job.board, job.hidden, tuple(json.loads(job.seeds)),
+                       job.attempts, job.max_attempts)
+
+
+def renew(sessions: sessionmaker[Session], job_id: int, owner: str, lease_seconds: float,
+          progress: tuple[int, int] | None = None) -> bool:
+    """Extend a lease (and record progress); False if the lease is no longer this worker's."""
+    from sqlalchemy import update
+
+    values: dict = {"lease_expires": time.time() + lease_seconds}
+    if progress is not None:
+        values["units_done"], values["units_total"] = progress
+    with sessions() as session, session.begin():
+        result = session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
+                                 .values(**values))
+        return result.rowcount == 1
+
+
+def record_resume(sessions: sessionmaker[Session], job_id: int, owner: str, done: int, total: int) -> None:
+    """Note how many units the current attempt found already done (it resumes after them)."""
+    from sqlalchemy import update
+
+    with sessions() as session, session.begin():
+        session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
+                        .values(resumed_units=done, units_done=done, units_total=total))
+
+
+def release(sessions: sessionmaker[Session], job_id: int, owner: str, error: str | None = None,
+            count_attempt: bool = False) -> bool:
+    """Put a running job back in the queue (a worker stopping, or a retry after an error)."""
+    from sqlalchemy import update
+
+    values: dict = {"state": QUEUED, "lease_owner": None, "lease_expires": None, "error": error}
+    if not count_attempt:
+        values["attempts"] = Job.attempts - 1
+    with sessions() as session, session.begin():
+        result = session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
+                                 .values(**values))
+        return result.rowcount == 1
+
+
+def close(session: Session, job_id: int, owner: str, state: str, error: str | None = None) -> bool:
+    """End a job in the caller's transaction (done, rejected or failed); False if the lease was lost."""
+    from sqlalchemy import update
+
+    assert state in (DONE, REJECTED, FAILED)
+    values: dict = {"state": state, "error": error, "finished": time.time(), "lease_owner": None, "lease_expires": None}
+    if state == DONE:
+        values["units_done"] = Job.units_total  # the last units finished after the last progress record
+    result = session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
+                             .values(**values))
+    return result.rowcount == 1
+
+
+def queue_counts(session: Session) -> dict[str, int]:
+    """How many jobs are in each state."""
+    from sqlalchemy import func, select
+
+    return {state: n for state, n in session.execute(select(Job.state, func.count()).group_by(Job.state))}
+

@@ -1,0 +1,225 @@
+"""Submissions: results files and agents in, their status out.
+
+A submission is accepted (202) only after every check that needs no scoring has passed; it is then
+stored and queued in one transaction with its jobs (re-scoring for a results file; evaluation on
+the public suite and on its hidden twin for an agent). Rejections are 4xx with the reason: 400
+malformed, 401 token, 409 replayed, 413 too large, 422 content, 429 rate limit or quota.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import TYPE_CHECKING, Any
+
+from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+
+from mewa_bench.service.errors import ApiError, not_found
+from mewa_bench.service.limits import DAY, quota_error
+from mewa_bench.service.models import AGENT, DONE, EVALUATE, FAILED, QUEUED, REJECTED, RESULTS, RUNNING, SCORE
+from mewa_bench.service.routes.context import session, settings_of, submitter
+from mewa_bench.service.uploads import (check_agent, check_archive, check_results, copy_limited, remove_upload,
+                                        staging_path, store_agent, store_results)
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from sqlalchemy.orm import Session
+
+    from mewa_bench.service.models import Submission, Token
+
+router = APIRouter(prefix="/api/submissions", tags=["submissions"])
+
+
+def read_limited(upload: UploadFile, limit: int, what: str) -> bytes:
+    """An uploaded part's bytes, or a 413 naming the part and its limit."""
+    data = upload.file.read(limit + 1)
+    if len(data) > limit:
+        raise ApiError(413, "too_large", f"{what} is larger than the limit of {limit:,} bytes")
+    if not data:
+        raise ApiError(400, "empty_upload", f"{what} is empty")
+    return data
+
+
+def _commit(request: Request, token: Token, kind: str, suite: str, digest: str, agent_name: str, agent_sha256: str,
+            relative: Path, jobs: list[tuple[str, str, bool, tuple[int, ...]]], agent_args: dict[str, str] | None = None
+            ) -> int:
+    """Store the submission and its jobs in one transaction, after the replay and quota checks; returns its id."""
+    from sqlalchemy import func, select
+    from sqlalchemy.exc import IntegrityError
+
+    from mewa_bench.service.db import transaction
+    from mewa_bench.service.jobs import add_job
+    from mewa_bench.service.models import Submission, Token
+
+    settings = settings_of(request)
+    limits = settings.limits
+    now = time.time()
+    try:
+        with transaction(request.app.state.sessions) as s:
+            s.execute(select(Token.id).where(Token.id == token.id).with_for_update())  # one quota count at a time
+            _refuse_replay(s, digest, kind)
+            limit = token.daily_results if kind == RESULTS else token.daily_agents
+            limit = (limits.daily_results if kind == RESULTS else limits.daily_agents) if limit is None else limit
+            count, oldest = s.execute(select(func.count(), func.min(Submission.created)).where(
+                Submission.token_id == token.id, Submission.kind == kind, Submission.created > now - DAY)).one()
+            if count >= limit:
+                raise quota_error("results" if kind == RESULTS else "agent", limit, oldest or now, now)
+            submission = Submission(token_id=token.id, kind=kind, suite=suite, digest=digest, agent_name=agent_name,
+                                    agent_sha256=agent_sha256, file=relative.as_posix(), created=now,
+                                    agent_args=None if agent_args is None else json.dumps(agent_args, sort_keys=True))
+            s.add(submission)
+            s.flush()
+            for job_kind, board, hidden, seeds in jobs:
+                add_job(s, submission.id, job_kind, board, hidden, seeds, settings.max_attempts)
+            return submission.id
+    except IntegrityError:  # the same upload committed concurrently by another request
+        with request.app.state.sessions() as s:
+            _refuse_replay(s, digest, kind)
+        raise
+
+
+def _refuse_replay(s: Session, digest: str, kind: str) -> None:
+    """A 409 if an upload with this digest was accepted before."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import Submission
+
+    earlier = s.scalar(select(Submission.id).where(Submission.digest == digest))
+    if earlier is not None:
+        what = "results file (the same run: identical units and header)" if kind == RESULTS else \
+            "agent (the same agent file, checkpoint, agent args and suite)"
+        raise ApiError(409, "replayed", f"this {what} was already submitted as submission {earlier} "
+                                        f"(/api/submissions/{earlier}); a replayed upload is not scored again")
+
+
+def _accepted(submission_id: int) -> dict[str, Any]:
+    """The 202 answer of an accepted submission."""
+    return {"id": submission_id, "status": QUEUED, "url": f"/api/submissions/{submission_id}"}
+
+
+@router.post("/results", status_code=202, summary="Submit a results file")
+def submit_results(request: Request, file: UploadFile = File(..., description="A results file of `mewa-bench evaluate`."),
+                   token=Depends(submitter)) -> dict[str, Any]:
+    """Checked now (schema, suite and its hash, seeds, units); re-scored from its episodes by a worker."""
+    settings = settings_of(request)
+    request.app.state.rate.check(token.id, _rate(token, settings))
+    data = read_limited(file, settings.limits.results_bytes, "the results file")
+    checked = check_results(data, settings, request.app.state.suites)
+    relative = store_results(settings, data)
+    try:
+        submission_id = _commit(request, token, RESULTS, checked.suite, checked.digest, checked.agent_name,
+                                checked.agent_sha256, relative, [(SCORE, checked.suite, False, checked.seeds)])
+    except BaseException:
+        remove_upload(settings, relative)
+        raise
+    return _accepted(submission_id)
+
+
+@router.post("/agent", status_code=202, summary="Submit an agent for evaluation")
+def submit_agent(request: Request,
+                 agent: UploadFile = File(..., description="The agent: a .py file with make_agent(...) or class Agent."),
+                 checkpoint: UploadFile | None = File(None, description="Optional .tar(.gz), unpacked beside the agent file."),
+                 suite: str = Form("narrow-v1", description="The public suite to evaluate on (and its hidden twin)."),
+                 name: str | None = Form(None, description="The agent's name on the boards (default: the file name)."),
+                 agent_arg: list[str] = Form([], description="key=value passed to make_agent (repeatable)."),
+                 token=Depends(submitter)) -> dict[str, Any]:
+    """Queued for the workers: evaluated in the sandbox on `suite` and on its hidden twin."""
+    from mewa_bench.service.boards import hidden_boards, hidden_twin
+
+    settings = settings_of(request)
+    limits = settings.limits
+    request.app.state.rate.check(token.id, _rate(token, settings))
+    source = read_limited(agent, limits.agent_bytes, "the agent file")
+    archive: Path | None = None
+    try:
+        checkpoint_sha256 = None
+        if checkpoint is not None and checkpoint.filename:
+            archive = staging_path(settings, ".checkpoint")
+            checkpoint_sha256 = copy_limited(checkpoint.file, archive, limits.checkpoint_bytes, "the checkpoint archive")
+            check_archive(archive, limits.checkpoint_unpacked_bytes)
+        checked = check_agent(source, agent.filename or "agent.py", name, suite, agent_arg, checkpoint_sha256)
+        jobs = [(EVALUATE, suite, False, settings.seeds_for(suite))]
+        jobs += [(EVALUATE, board, True, settings.seeds_for(board)) for board in hidden_boards(settings)
+                 if hidden_twin(board) == suite]
+        relative = store_agent(settings, checked, archive)
+    finally:
+        if archive is not None:
+            archive.unlink(missing_ok=True)
+    try:
+        submission_id = _commit(request, token, AGENT, suite, checked.digest, checked.name, checked.agent_sha256,
+                                relative, jobs, checked.agent_args)
+    except BaseException:
+        remove_upload(settings, relative)
+        raise
+    return _accepted(submission_id)
+
+
+def _rate(token: Token, settings) -> int:
+    """The token's rate limit, or the server's."""
+    return settings.limits.rate_per_minute if token.rate_per_minute is None else token.rate_per_minute
+
+
+def overall_status(states: list[str]) -> str:
+    """A submission's status from its jobs': rejected or failed if any is, done if all are, else running/queued."""
+    for state in (REJECTED, FAILED):
+        if state in states:
+            return state
+    if states and all(s == DONE for s in states):
+        return DONE
+    return RUNNING if RUNNING in states or DONE in states else QUEUED
+
+
+def describe(s: Session, submission: Submission) -> dict[str, Any]:
+    """A submission's status, its jobs and its scores."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import BoardEntry, Job
+
+    jobs = s.scalars(select(Job).where(Job.submission_id == submission.id).order_by(Job.id)).all()
+    entries = {e.job_id: e for e in s.scalars(select(BoardEntry).where(BoardEntry.submission_id == submission.id))}
+    status = overall_status([j.state for j in jobs])
+    failed = [j for j in jobs if j.state in (REJECTED, FAILED)]
+    return {
+        "id": submission.id, "kind": submission.kind, "suite": submission.suite, "agent": submission.agent_name,
+        "agent_sha256": submission.agent_sha256, "created": submission.created, "status": status,
+        "reason": f"{failed[0].board}: {failed[0].error}" if failed else None,
+        "jobs": [{"board": j.board, "hidden": j.hidden, "kind": j.kind, "state": j.state, "attempts": j.attempts,
+                  "units_done": j.units_done, "units_total": j.units_total, "resumed_units": j.resumed_units,
+                  "error": j.error, "started": j.started, "finished": j.finished} for j in jobs],
+        "scores": {j.board: json.loads(entries[j.id].scores) for j in jobs if j.id in entries},
+    }
+
+
+@router.get("/{submission_id}", summary="A submission's status")
+def submission_status(submission_id: int, db=Depends(session)) -> dict[str, Any]:
+    """queued, running, done, rejected (with the reason) or failed; each job's progress; the scores once done."""
+    from mewa_bench.service.models import Submission
+
+    submission = db.get(Submission, submission_id)
+    if submission is None:
+        raise not_found(f"submission {submission_id}")
+    return describe(db, submission)
+
+
+def recent_submissions(db: Session, limit: int) -> list[dict[str, Any]]:
+    """The latest submissions, newest first, with their status."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import Job, Submission
+
+    subs = db.scalars(select(Submission).order_by(Submission.id.desc()).limit(limit)).all()
+    states: dict[int, list[str]] = {}
+    if subs:
+        for sid, state in db.execute(select(Job.submission_id, Job.state).where(Job.submission_id.in_([x.id for x in subs]))):
+            states.setdefault(sid, []).append(state)
+    return [{"id": x.id, "kind": x.kind, "suite": x.suite, "agent": x.agent_name, "created": x.created,
+             "status": overall_status(states.get(x.id, [])), "url": f"/api/submissions/{x.id}"} for x in subs]
+
+
+@router.get("", summary="The latest submissions")
+def list_submissions(limit: int = 50, db=Depends(session)) -> list[dict[str, Any]]:
+    """Newest first (at most 500)."""
+    if not 1 <= limit <= 500:
+        raise ApiError(400, "invalid_limit", f"limit must be between 1 and 500, got {limit}")
+    return recent_submissions(db, limit)

@@ -1,0 +1,143 @@
+"""`mewa-bench serve`: the API (uvicorn, one process) and its evaluation workers (N processes).
+
+At start: the data dir, the schema migrations, and a sweep of upload files that no row points at
+(a server killed mid-upload). The workers are child processes, restarted if one dies; on SIGINT or
+SIGTERM the API stops taking requests and each worker puts its running job back in the queue.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from typing import TYPE_CHECKING
+
+from mewa_bench.service.settings import Settings
+
+if TYPE_CHECKING:
+    from multiprocessing.process import BaseProcess
+
+log = logging.getLogger("mewa_bench.service")
+RESTART_DELAY = 1.0  # seconds between restarts of a dead worker
+STOP_TIMEOUT = 20.0  # seconds a worker gets to put its job back before it is killed
+
+
+def prepare(settings: Settings) -> None:
+    """Create the data dir, migrate the database, and remove orphaned upload files."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.db import make_engine, migrate, session_factory
+    from mewa_bench.service.models import Submission
+    from mewa_bench.service.uploads import sweep_orphans
+
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    engine = make_engine(settings.database_url)
+    try:
+        migrate(engine)
+        with session_factory(engine)() as s:
+            referenced = set(s.scalars(select(Submission.file)))
+        removed = sweep_orphans(settings, referenced)
+        if removed:
+            log.info("removed %d upload file(s) of uploads that were never committed", len(removed))
+    finally:
+        engine.dispose()
+
+
+def _worker_entry(settings: Settings, log_level: int) -> None:
+    """A worker process's main function (spawned: a fresh interpreter)."""
+    from mewa_bench.service.worker import run_worker
+
+    logging.basicConfig(level=log_level, format="%(asctime)s %(name)s[%(process)d] %(levelname)s %(message)s")
+    run_worker(settings, supervised=True)
+
+
+class WorkerPool:
+    """N worker processes, each restarted if it dies while the pool runs."""
+
+    def __init__(self, settings: Settings, size: int, log_level: int = logging.INFO) -> None:
+        self.settings, self.size, self.log_level = settings, size, log_level
+        self.processes: list[BaseProcess | None] = [None] * size
+        self._context = multiprocessing.get_context("spawn")
+        self._stopping = threading.Event()
+        self._watcher = threading.Thread(target=self._watch, name="worker-pool", daemon=True)
+
+    def start(self) -> None:
+        """Start every worker and the thread that restarts dead ones."""
+        for i in range(self.size):
+            self._start(i)
+        self._watcher.start()
+
+    def _start(self, i: int) -> None:
+        """Start worker `i`."""
+        process = self._context.Process(target=_worker_entry, args=(self.settings, self.log_level),
+                                        name=f"mewa-worker-{i}", daemon=False)
+        process.start()
+        self.processes[i] = process
+
+    def _watch(self) -> None:
+        """Restart workers that died while the pool runs."""
+        while not self._stopping.wait(RESTART_DELAY):
+            for i, process in enumerate(self.processes):
+                if process is not None and not process.is_alive() and not self._stopping.is_set():
+                    log.warning("worker %s (pid %s) exited with %s; starting another", i, process.pid, process.exitcode)
+                    self._start(i)
+
+    def pids(self) -> list[int]:
+        """The workers' process ids."""
+        return [p.pid for p in self.processes if p is not None and p.pid is not None]
+
+    def stop(self) -> None:
+        """SIGTERM every worker (each puts its job back), then wait; kill the ones that do not stop."""
+        self._stopping.set()
+        for process in self.processes:
+            if process is not None and process.is_alive():
+                os.kill(process.pid, signal.SIGTERM)
+        deadline = time.monotonic() + STOP_TIMEOUT
+        for process in self.processes:
+            if process is not None:
+                process.join(max(0.0, deadline - time.monotonic()))
+                if process.is_alive():
+                    process.kill()
+                    process.join()
+
+
+def run_server(settings: Settings, host: str = "127.0.0.1", port: int = 8000, workers: int = 1,
+               log_level: str = "info") -> None:
+    """Serve the API on host:port with `workers` evaluation workers, until SIGINT or SIGTERM."""
+    from mewa_bench.extras import require
+
+    uvicorn = require("uvicorn", "service", "mewa-bench serve")
+    from mewa_bench.service.app import create_app
+
+    level = getattr(logging, log_level.upper(), logging.INFO)
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s[%(process)d] %(levelname)s %(message)s")
+    prepare(settings)
+    _warn_without_sandbox(workers)
+    app = create_app(settings)
+    pool = WorkerPool(settings, workers, level)
+    pool.start()
+    # uvicorn stops on SIGTERM or SIGINT, then raises it again with the handler it found: make that handler a no-op,
+    # so that the workers are stopped below (each puts its running job back in the queue) before we exit
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda signum, frame: None)
+    try:
+        config = uvicorn.Config(app, host=host, port=port, log_level=log_level, timeout_graceful_shutdown=10,
+                                lifespan="off")
+        uvicorn.Server(config).run()
+    finally:
+        pool.stop()
+        app.state.engine.dispose()
+
+
+def _warn_without_sandbox(workers: int) -> None:
+    """Agents are only ever run sandboxed: say so at start if this machine cannot."""
+    if workers == 0:
+        return
+    from mewa_bench.service.sandbox import sandbox_available
+
+    problem = sandbox_available()
+    if problem is not None:
+        log.warning("agent submissions will fail on this server: it cannot sandbox agents (%s)", problem)

@@ -1,0 +1,309 @@
+"""Uploads: schema checks of results files and agent files, and how they are kept in the data dir.
+
+Everything that needs no scoring is checked here, before anything is stored, and answered with a
+4xx naming what was wrong: not JSON, the results schema (`protocol.results.validate_structure`), the
+leaderboard's run checks (`leaderboard.validate.check_run`: complete, a public suite with its exact
+hash, this protocol, the board's seeds, every unit once), an agent file that is not Python or has
+no agent, an unsafe or oversized checkpoint archive. Re-scoring (`scoring`) is the workers' job.
+
+Files are written under a fresh name, fsynced and renamed into place before the database row that
+points at them is committed; `sweep_orphans` removes the files of uploads whose row never came
+(a server killed in between).
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import json
+import os
+import re
+import shutil
+import tarfile
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any, Iterable
+
+from mewa_bench.design.suites import ALL_SUITES, canonical_json
+from mewa_bench.service.errors import ApiError, bad_request, unprocessable
+from mewa_bench.service.settings import Settings
+
+CHUNK = 1 << 20
+AGENT_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+AGENT_ARG_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
+MAX_AGENT_ARGS = 32
+MAX_ARCHIVE_MEMBERS = 10_000
+ORPHAN_AGE = 60.0  # seconds: younger files may belong to an upload still being committed
+
+
+@dataclass(frozen=True)
+class CheckedResults:
+    """A results upload that passed the checks: what its row and job need."""
+
+    results: dict[str, Any]
+    suite: str
+    seeds: tuple[int, ...]
+    agent_name: str
+    agent_sha256: str
+    digest: str
+
+
+@dataclass(frozen=True)
+class CheckedAgent:
+    """An agent upload that passed the checks."""
+
+    source: bytes
+    name: str
+    suite: str
+    agent_args: dict[str, str]
+    agent_sha256: str
+    checkpoint_sha256: str | None
+    digest: str
+
+
+def _no_constants(name: str) -> float:
+    """Refuse NaN and Infinity, which JSON does not have."""
+    raise ValueError(f"{name} is not a JSON number (non-finite values are not allowed)")
+
+
+def parse_results(data: bytes) -> Any:
+    """The uploaded bytes as JSON, or a 400 saying where the syntax breaks."""
+    try:
+        return json.loads(data.decode("utf-8"), parse_constant=_no_constants)
+    except UnicodeDecodeError as e:
+        raise bad_request("invalid_json", f"the results file is not UTF-8 text (byte {e.start})") from None
+    except json.JSONDecodeError as e:
+        raise bad_request("invalid_json", f"the results file is not valid JSON: {e}") from None
+    except ValueError as e:
+        raise bad_request("invalid_json", f"the results file is not valid JSON: {e}") from None
+
+
+def results_digest(results: dict[str, Any]) -> str:
+    """What makes two results uploads the same run: the file without its timing, machine and execution."""
+    from mewa_bench.protocol.results import stable_view
+
+    return hashlib.sha256(b"results\0" + canonical_json(stable_view(results)).encode()).hexdigest()
+
+
+def check_results(data: bytes, settings: Settings, suites: Any) -> CheckedResults:
+    """Every check of a results upload that needs no scoring; 4xx ApiErrors say what failed."""
+    from mewa_bench.leaderboard.validate import InvalidResults, check_run
+    from mewa_bench.protocol.results import ResultsError, validate_structure
+
+    results = parse_results(data)
+    try:
+        validate_structure(results, "results file")
+        name = results["suite"]["name"]
+        if name not in ALL_SUITES:
+            raise unprocessable("unknown_suite", f"results file: suite {name!r} is not a public suite of this server "
+                                                 f"({', '.join(ALL_SUITES)})")
+        suite, seeds, _ = check_run(results, suites, settings.seeds_for(name))
+        _check_stored_scores(results["scores"])
+        agent = results["agent"]
+        agent_name, agent_sha256 = agent.get("name"), agent.get("sha256")
+    except ResultsError as e:
+        raise unprocessable("invalid_results", str(e)) from None
+    except InvalidResults as e:
+        raise unprocessable("invalid_results", f"results file: {e}") from None
+    except (AttributeError, KeyError, IndexError, TypeError, ValueError) as e:
+        raise unprocessable("invalid_results", f"results file: malformed results ({type(e).__name__}: {e})") from None
+    if not isinstance(agent_name, str) or not 0 < len(agent_name) <= 100:
+        raise unprocessable("invalid_results", f"results file: agent.name must be a string of 1-100 characters, got {agent_name!r}")
+    if not isinstance(agent_sha256, str) or not re.fullmatch(r"[0-9a-f]{64}", agent_sha256):
+        raise unprocessable("invalid_results", f"results file: agent.sha256 must be 64 hex digits, got {agent_sha256!r}")
+    return CheckedResults(results, suite.name, seeds, agent_name, agent_sha256, results_digest(results))
+
+
+def _check_stored_scores(scores: Any) -> None:
+    """The aggregates the workers compare with their recomputation are present and numbers."""
+    where = [("raw", "mean", "mean"), ("mean", "mean"), ("adaptability", "mean")]
+    for path in where:
+        value: Any = scores
+        for key in path:
+            if not isinstance(value, dict) or key not in value:
+                raise unprocessable("invalid_results", f"results file: scores.{'.'.join(path)} is missing")
+            value = value[key]
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise unprocessable("invalid_results", f"results file: scores.{'.'.join(path)} must be a number, got {value!r}")
+    curve = scores.get("curve")
+    if not isinstance(curve, list) or not all(isinstance(p, dict) and isinstance(p.get("mean"), (int, float))
+                                              for p in curve):
+        raise unprocessable("invalid_results", "results file: scores.curve must be a list of {\"mean\": number, ...}")
+
+
+def check_agent(source: bytes, filename: str, name: str | None, suite: str, agent_args: Iterable[str],
+                checkpoint_sha256: str | None) -> CheckedAgent:
+    """An agent file must be UTF-8 Python defining make_agent or class Agent; the suite public; args key=value."""
+    if suite not in ALL_SUITES:
+        raise unprocessable("unknown_suite", f"suite {suite!r} is not a public suite of this server ({', '.join(ALL_SUITES)})")
+    try:
+        text = source.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise unprocessable("invalid_agent", f"agent file {filename}: not UTF-8 text (byte {e.start})") from None
+    try:
+        tree = ast.parse(text, filename=filename)
+    except SyntaxError as e:
+        raise unprocessable("invalid_agent", f"agent file {filename}, line {e.lineno}: {e.msg}") from None
+    defined = {node.name for node in tree.body if isinstance(node, (ast.FunctionDef, ast.ClassDef))}
+    if not defined & {"make_agent", "Agent"}:
+        raise unprocessable("invalid_agent", f"agent file {filename}: defines neither make_agent(observation_space, "
+                                             f"action_space) nor class Agent at its top level")
+    stem = Path(filename).stem
+    name = name or (stem if stem != "agent" else None)
+    if name is None or not AGENT_NAME_RE.match(name):
+        raise unprocessable("invalid_agent", f"agent name {name!r}: give a name of 1-64 letters, digits, '.', '_' or "
+                                             f"'-' (form field name; a file called agent.py has no name of its own)")
+    args = parse_agent_args(agent_args)
+    agent_sha256 = hashlib.sha256(source).hexdigest()
+    basis = json.dumps({"agent": agent_sha256, "checkpoint": checkpoint_sha256, "suite": suite, "args": args},
+                       sort_keys=True)
+    digest = hashlib.sha256(b"agent\0" + basis.encode()).hexdigest()
+    return CheckedAgent(source, name, suite, args, agent_sha256, checkpoint_sha256, digest)
+
+
+def parse_agent_args(items: Iterable[str]) -> dict[str, str]:
+    """`key=value` strings as a dict; a 422 for anything else."""
+    args: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not AGENT_ARG_RE.match(key):
+            raise unprocessable("invalid_agent_args", f"agent arg {item!r}: expected key=value with a Python identifier as key")
+        if key in args:
+            raise unprocessable("invalid_agent_args", f"agent arg {key!r} is given twice")
+        if len(value) > 1000:
+            raise unprocessable("invalid_agent_args", f"agent arg {key!r}: values are limited to 1000 characters")
+        args[key] = value
+    if len(args) > MAX_AGENT_ARGS:
+        raise unprocessable("invalid_agent_args", f"{len(args)} agent args; at most {MAX_AGENT_ARGS}")
+    return args
+
+
+# -- storage ---------------------------------------------------------------------------------------
+def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> None:
+    """Write via a temporary sibling, fsync and rename: the file is whole or absent."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def store_results(settings: Settings, data: bytes) -> Path:
+    """Keep an uploaded results file as it was sent; returns its path relative to the data dir."""
+    relative = Path("uploads") / "results" / f"{uuid.uuid4().hex}.json"
+    write_bytes_atomic(settings.data_dir / relative, data)
+    return relative
+
+
+def copy_limited(source: IO[bytes], out: Path, limit: int, what: str) -> str:
+    """Copy a spooled upload to `out` (at most `limit` bytes, else 413); returns its sha256."""
+    h, size = hashlib.sha256(), 0
+    with open(out, "wb") as f:
+        while chunk := source.read(CHUNK):
+            size += len(chunk)
+            if size > limit:
+                raise ApiError(413, "too_large", f"{what} is larger than the limit of {limit:,} bytes")
+            h.update(chunk)
+            f.write(chunk)
+        f.flush()
+        os.fsync(f.fileno())
+    return h.hexdigest()
+
+
+def staging_path(settings: Settings, suffix: str) -> Path:
+    """A fresh file name in the data dir's staging area (swept if it outlives its request)."""
+    staging = settings.uploads_dir / "staging"
+    staging.mkdir(parents=True, exist_ok=True)
+    return staging / f"{uuid.uuid4().hex}{suffix}"
+
+
+def check_archive(archive: Path, unpacked_limit: int) -> None:
+    """A checkpoint archive: a readable tar(.gz) within the member and unpacked-size limits, without an agent.py
+    (member safety, no links or paths out of it, is checked as it is unpacked: `store_agent`)."""
+    try:
+        with tarfile.open(archive, "r:*") as tar:
+            members = tar.getmembers()
+    except (tarfile.TarError, EOFError, OSError) as e:
+        raise unprocessable("invalid_checkpoint", f"checkpoint archive: not a readable .tar or .tar.gz ({e})") from None
+    if len(members) > MAX_ARCHIVE_MEMBERS:
+        raise unprocessable("invalid_checkpoint", f"checkpoint archive: {len(members)} members; at most {MAX_ARCHIVE_MEMBERS}")
+    total = 0
+    for m in members:
+        if Path(m.name).parts[:1] == ("agent.py",):
+            raise unprocessable("invalid_checkpoint", "checkpoint archive: a member named agent.py would replace the agent file")
+        total += m.size
+    if total > unpacked_limit:
+        raise ApiError(413, "too_large", f"checkpoint archive: unpacks to {total:,} bytes; the limit is {unpacked_limit:,}")
+
+
+def store_agent(settings: Settings, agent: CheckedAgent, archive: Path | None) -> Path:
+    """Lay out `uploads/agents/<uuid>/<name>/agent.py`, the checkpoint unpacked beside it (where agents find
+    their files); everything world-readable for the sandbox user. Returns agent.py relative to the data dir."""
+    from mewa_bench.datasets.catalog import DatasetError
+    from mewa_bench.datasets.downloader import extract_archive
+
+    base = Path("uploads") / "agents" / uuid.uuid4().hex
+    staging = staging_path(settings, ".agent")
+    folder = staging / agent.name
+    staging.mkdir()
+    try:
+        if archive is not None:
+            try:
+                extract_archive(archive, folder, "checkpoint archive")
+            except DatasetError as e:  # an unsafe member (absolute path, '..', a link) or a broken stream
+                raise unprocessable("invalid_checkpoint", str(e)) from None
+        folder.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(folder / "agent.py", agent.source)
+        for path in [staging, *staging.rglob("*")]:
+            os.chmod(path, 0o755 if path.is_dir() else 0o644)
+        target = settings.data_dir / base
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.chmod(target.parent, 0o755)
+        os.rename(staging, target)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return base / agent.name / "agent.py"
+
+
+def remove_upload(settings: Settings, relative: Path) -> None:
+    """Remove the files of an upload whose row was not committed."""
+    path = settings.data_dir / relative
+    if path.parent.parent.parent.name == "agents":  # uploads/agents/<uuid>/<name>/agent.py
+        shutil.rmtree(path.parent.parent, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def sweep_orphans(settings: Settings, referenced: set[str], now: float | None = None) -> list[Path]:
+    """Remove upload files no submission row points at (older than ORPHAN_AGE); returns what was removed."""
+    now = time.time() if now is None else now
+    removed: list[Path] = []
+    uploads = settings.uploads_dir
+    candidates = [*(uploads / "results").glob("*.json"), *(uploads / "agents").glob("*"), *(uploads / "staging").glob("*")]
+    candidates += [p for p in (uploads / "results").glob(".*.tmp")]
+    for path in candidates:
+        try:
+            age = now - path.lstat().st_mtime
+        except FileNotFoundError:
+            continue
+        if age < ORPHAN_AGE:
+            continue
+        relative = path.relative_to(settings.data_dir)
+        if path.parent.name == "agents":
+            if any(r.startswith(f"{relative.as_posix()}/") for r in referenced):
+                continue
+        elif relative.as_posix() in referenced:
+            continue
+        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+        removed.append(relative)
+    return removed

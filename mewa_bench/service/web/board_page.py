@@ -1,0 +1,91 @@
+"""A board's page: what the suite is, the adaptation-curve figure, and the ranked table.
+
+The table has the static leaderboard's columns and cells (`leaderboard.render.cells`); each agent
+links to its submission's status page. Every row carries its kind, rank and exact mean score as
+data attributes (what the JSON API at /api/leaderboards/<board> serves).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from mewa_bench.leaderboard.board import Row
+from mewa_bench.leaderboard.render import EXPLANATION, HEADER, NOTES, cells
+from mewa_bench.service.web.layout import esc, page
+
+_ROW_FIELDS = tuple(f.name for f in dataclasses.fields(Row))
+_NUMERIC = frozenset({"rank", "mean score [95% CI]", "IQM", "s_1", "s_10", "adaptability [95% CI]",
+                      "vs best fixed [95% CI]", "skill", "seeds"})
+AGENT_COLUMN = HEADER.index("agent")
+
+
+def entries_text(n: int) -> str:
+    """`1 entry`, `4 entries`."""
+    return f"{n} entry" if n == 1 else f"{n} entries"
+
+
+def row_of(content: dict[str, Any]) -> Row:
+    """The leaderboard row inside a row of the JSON API."""
+    return Row(**{k: content[k] for k in _ROW_FIELDS})
+
+
+def table_row(content: dict[str, Any]) -> str:
+    """One <tr>: the static leaderboard's cells, the agent linked to its submission."""
+    row = row_of(content)
+    tds = []
+    for column, (header, text) in enumerate(zip(HEADER, cells(row), strict=True)):
+        inner = esc(text)
+        if column == AGENT_COLUMN and content.get("submission_id") is not None:
+            inner = f'<a href="/submissions/{int(content["submission_id"])}">{inner}</a>'
+        tds.append(f'<td class="n">{inner}</td>' if header in _NUMERIC else f"<td>{inner}</td>")
+    submission = "" if content.get("submission_id") is None else f' data-submission="{int(content["submission_id"])}"'
+    rank = "" if row.rank is None else row.rank
+    return (f'<tr class="{esc(row.kind)}" data-kind="{esc(row.kind)}" data-rank="{rank}" data-mean="{row.mean!r}"'
+            f"{submission}>" + "".join(tds) + "</tr>")
+
+
+def _facts(board: dict[str, Any]) -> str:
+    """What the board ranks: the suite and its hash (public), or only that it is hidden."""
+    name = esc(board["board"])
+    if board["hidden"]:
+        twin = esc(board["public_twin"])
+        what = (f'a <strong>hidden test suite</strong>: agents submitted for <a href="/leaderboards/{twin}">{twin}</a> '
+                f"are also evaluated here, on tasks and workers the server never serves")
+    elif board["suite"] is not None:
+        sha256 = esc(board["suite"]["sha256"])
+        what = f'public suite <a href="/api/suites/{name}">{name}</a>, sha256 <code>{sha256}</code>'
+    else:
+        what = "a public suite"
+    return (f'<p class="facts">{what}; {entries_text(board["entries"])}, ranked with {board["seeds"]} seeds per pair. '
+            f'As JSON: <a href="/api/leaderboards/{name}">/api/leaderboards/{name}</a>.</p>')
+
+
+def _figure(board: dict[str, Any], figure_version: str | None, plotted: int) -> str:
+    """The figure, or why there is none."""
+    name = esc(board["board"])
+    if figure_version is None:
+        return ('<p class="muted">No figure yet: the server has not generated this hidden suite (no agent was '
+                "evaluated on it).</p>")
+    agents = board["entries"]
+    shown = f"the {plotted} best of {entries_text(agents)}" if agents > plotted else entries_text(agents)
+    return (f'<figure><img id="curves" src="/leaderboards/{name}/curves.png?v={esc(figure_version)}" '
+            f'alt="Adaptation curves on {name}: score s_k per episode k for each agent, with the reference lines" '
+            f'width="900"><figcaption>Adaptation curves: mean score s_k of episode k with the same hidden worker, per '
+            f"agent ({shown}; bands: 95% CI over pairs x seeds), and the suite's exact reference lines (dashed)."
+            f"</figcaption></figure>")
+
+
+def board_html(board: dict[str, Any], figure_version: str | None, plotted: int) -> str:
+    """The whole page of a board (the JSON of /api/leaderboards/<board>)."""
+    head = "".join(f"<th>{esc(h)}</th>" for h in HEADER)
+    rows = "\n".join(table_row(r) for r in board["rows"])
+    notes = "".join(f"<li>{esc(n)}</li>" for n in NOTES)
+    terms = "".join(f"<dt>{esc(t)}</dt><dd>{esc(text)}</dd>" for t, text in EXPLANATION)
+    kind = "hidden" if board["hidden"] else "public"
+    body = (f'<div id="board" data-board="{esc(board["board"])}" data-kind="{kind}">{_facts(board)}'
+            f"{_figure(board, figure_version, plotted)}\n"
+            f'<table id="ranking"><thead><tr>{head}</tr></thead><tbody>\n{rows}\n</tbody></table>\n'
+            f"<ul class=\"muted\">{notes}</ul><dl class=\"muted\">{terms}</dl></div>")
+    title = f"Leaderboard: {board['board']}" + (" (hidden test suite)" if board["hidden"] else "")
+    return page(title, body)

@@ -1,0 +1,190 @@
+"""A worker process: claims jobs from the queue, runs them, and writes each result exactly once.
+
+While a job runs, a heartbeat thread renews its lease and records its progress; if the lease is
+lost (the worker stalled past it and another worker took the job) the job stops at its next unit
+and this worker writes nothing. A job ends in one transaction that closes it (conditional on the
+lease) and inserts its board entry (unique per job), so a result can neither be lost between the
+two nor written twice. SIGTERM stops the worker cleanly: the running job goes back to the queue and
+its finished units stay in its results file for the next claim.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import socket
+import secrets
+import threading
+import time
+from typing import TYPE_CHECKING
+
+from mewa_bench.service.db import make_engine, session_factory, transaction
+from mewa_bench.service.jobs import Claimed, claim, close, give_up_expired, record_resume, release, renew
+from mewa_bench.service.models import DONE, FAILED, REJECTED, SCORE, BoardEntry, Submission
+from mewa_bench.service.settings import Settings
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
+
+    from mewa_bench.service.scoring import Scored
+
+log = logging.getLogger("mewa_bench.service.worker")
+PROGRESS_SECONDS = 5.0  # the longest a job's recorded progress lags behind (and the longest between lease renewals)
+
+
+class LeaseLost(Exception):
+    """Another worker owns the job now; this one must stop without writing anything."""
+
+
+class StopWorker(BaseException):
+    """Raised in the worker's main thread by SIGTERM or SIGINT (a BaseException: no `except Exception` swallows it)."""
+
+
+class Heartbeat:
+    """Renews a job's lease every third of its length (at least every PROGRESS_SECONDS) and records progress,
+    in a thread."""
+
+    def __init__(self, sessions: sessionmaker[Session], job: Claimed, owner: str, lease_seconds: float) -> None:
+        self.sessions, self.job, self.owner, self.lease = sessions, job, owner, lease_seconds
+        self.latest: tuple[int, int] | None = None
+        self.first = True
+        self.lost = threading.Event()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"lease-{job.id}", daemon=True)
+
+    def __enter__(self) -> Heartbeat:
+        """Start renewing."""
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        """Stop renewing (the job is ending)."""
+        self._stop.set()
+        self._thread.join()
+
+    def progress(self, done: int, total: int) -> None:
+        """The evaluation's progress callback: the first call says where this attempt resumes."""
+        if self.lost.is_set():
+            raise LeaseLost(f"job {self.job.id}: the lease was lost")
+        if self.first:
+            self.first = False
+            record_resume(self.sessions, self.job.id, self.owner, done, total)
+        self.latest = (done, total)
+
+    def _run(self) -> None:
+        """Renew until stopped, or until the lease is found lost."""
+        while not self._stop.wait(min(max(0.1, self.lease / 3), PROGRESS_SECONDS)):
+            try:
+                if not renew(self.sessions, self.job.id, self.owner, self.lease, self.latest):
+                    self.lost.set()
+                    return
+            except Exception:  # a database hiccup: try again at the next beat, the lease has slack
+                log.exception("job %s: renewing the lease failed", self.job.id)
+
+
+def worker_id() -> str:
+    """host:pid:random, the lease owner of this process's claims."""
+    return f"{socket.gethostname()[:40]}:{os.getpid()}:{secrets.token_hex(4)}"
+
+
+def _stop_on_signals() -> None:
+    """SIGTERM (the server stopping its workers) and SIGINT (Ctrl-C reaches the whole process group) stop cleanly."""
+    def handler(signum, frame) -> None:
+        """Stop the main thread where it is."""
+        raise StopWorker()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+def run_worker(settings: Settings, supervised: bool = False, max_jobs: int | None = None) -> None:
+    """Claim and run jobs until SIGTERM (or `max_jobs`); `supervised`: also stop when the parent process dies."""
+    _stop_on_signals()
+    parent = os.getppid()
+    engine = make_engine(settings.database_url)
+    sessions = session_factory(engine)
+    owner = worker_id()
+    log.info("worker %s started", owner)
+    done = 0
+    try:
+        while max_jobs is None or done < max_jobs:
+            if supervised and os.getppid() != parent:
+                log.warning("worker %s: the server is gone, stopping", owner)
+                return
+            give_up_expired(sessions)
+            job = claim(sessions, owner, settings.lease_seconds)
+            if job is None:
+                time.sleep(settings.poll_seconds)
+                continue
+            run_job(settings, sessions, job, owner)
+            done += 1
+    except StopWorker:
+        log.info("worker %s stopped", owner)
+    finally:
+        engine.dispose()
+
+
+def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, owner: str) -> None:
+    """Run one claimed job to its end: done (with its entry), rejected, failed, or back in the queue."""
+    log.info("job %s (%s, %s) claimed by %s, attempt %s", job.id, job.kind, job.board, owner, job.attempts)
+    from mewa_bench.leaderboard.validate import InvalidResults
+    from mewa_bench.service.evaluation import AgentRejected
+
+    with Heartbeat(sessions, job, owner, settings.lease_seconds) as beat:
+        try:
+            scored = _score(settings, sessions, job, beat)
+        except (InvalidResults, AgentRejected) as e:
+            with transaction(sessions) as session:
+                close(session, job.id, owner, REJECTED, str(e))
+            log.info("job %s rejected: %s", job.id, e)
+            return
+        except LeaseLost:
+            log.warning("job %s: lease lost, left to its new owner", job.id)
+            return
+        except StopWorker:
+            release(sessions, job.id, owner)
+            raise
+        except Exception as e:
+            log.exception("job %s failed on attempt %s", job.id, job.attempts)
+            reason = f"{type(e).__name__}: {e}"
+            if job.attempts >= job.max_attempts:
+                with transaction(sessions) as session:
+                    close(session, job.id, owner, FAILED, f"the service gave up after {job.attempts} attempts: {reason}")
+            else:
+                release(sessions, job.id, owner, error=reason, count_attempt=True)
+            return
+        if beat.lost.is_set():
+            return
+    with transaction(sessions) as session:
+        if close(session, job.id, owner, DONE):
+            session.add(BoardEntry(submission_id=job.submission_id, job_id=job.id, board=job.board, hidden=job.hidden,
+                                   agent_name=json.loads(scored.row)["name"],
+                                   agent_sha256=json.loads(scored.row)["agent_sha256"], privileged=scored.privileged,
+                                   mean=scored.mean, row=scored.row, scores=scored.scores, created=time.time()))
+    shutil.rmtree(settings.jobs_dir / str(job.id) / "scratch", ignore_errors=True)
+    log.info("job %s done", job.id)
+
+
+def _score(settings: Settings, sessions: sessionmaker[Session], job: Claimed, beat: Heartbeat) -> Scored:
+    """The job's work: re-score an upload, or evaluate an agent and score its run."""
+    from mewa_bench.design.suites import load_suite
+    from mewa_bench.service.evaluation import AgentJob, run_agent_job, suite_of
+    from mewa_bench.service.scoring import score_evaluation, score_upload
+    from mewa_bench.service.uploads import parse_results
+
+    with sessions() as session:
+        submission = session.get(Submission, job.submission_id)
+        file, name, args = submission.file, submission.agent_name, submission.agent_args
+    path = settings.data_dir / file
+    if job.kind == SCORE:
+        return score_upload(parse_results(path.read_bytes()), job.seeds, job.submission_id)
+    job_dir = settings.jobs_dir / str(job.id)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    os.chmod(job_dir, 0o700)
+    agent = AgentJob(agent_file=path, board=job.board, hidden=job.hidden, seeds=job.seeds, name=name,
+                     agent_args=json.loads(args or "{}"), out=job_dir / "results.json", scratch=job_dir / "scratch")
+    results = run_agent_job(settings, agent, beat.progress)
+    return score_evaluation(results, load_suite(suite_of(settings, job.board, job.hidden)), job.submission_id)

@@ -1,0 +1,281 @@
+"""The service's API on a real server (`mewa-bench serve`), on SQLite and on PostgreSQL: suites, boards,
+datasets with HTTP Range, tokens, limits, and results uploads re-scored byte for byte as `evaluate` does."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import subprocess
+import sys
+
+import httpx
+import pytest
+from service_harness import (BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_results,
+                             postgres_cluster,
+                             table_rows, wait_status)
+
+from mewa_bench.design.suites import load_suite, shipped_path
+from mewa_bench.files import json_text
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+
+@pytest.fixture(scope="session")
+def postgres():
+    """The session's PostgreSQL cluster (None without PostgreSQL: the postgresql variants skip, or fail in CI)."""
+    return postgres_cluster()
+MAX_RESULTS_MB = 1
+
+
+@pytest.fixture(scope="module", params=BACKENDS)
+def server(request, tmp_path_factory, postgres) -> Server:
+    db = database_url(request.param, postgres)
+    data = tmp_path_factory.mktemp(f"service-{request.param}") / "data"
+    running = Server(data, db, "--seeds", "2", "--workers", "1", "--no-hidden", "--max-results-mb", str(MAX_RESULTS_MB),
+                     "--lease-seconds", "5").start()
+    running.backend = request.param
+    yield running
+    running.stop()
+
+
+@pytest.fixture(scope="module")
+def token(server) -> str:
+    return server.token("alice")
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory) -> tuple[dict, bytes]:
+    """A results file written by `mewa-bench evaluate` (the random agent, narrow-v1, seeds 0 and 1)."""
+    out = tmp_path_factory.mktemp("evaluated") / "random-narrow-v1.json"
+    subprocess.run([*CLI, "evaluate", str(RANDOM_AGENT), "--seeds", "2",
+                    "--out", str(out)], check=True, capture_output=True, timeout=300)
+    return json.loads(out.read_text()), out.read_bytes()
+
+
+def variant(results: dict, name: str, change=lambda r: None) -> bytes:
+    """The results under another agent name (another run as far as replays go), changed by `change`."""
+    other = copy.deepcopy(results)
+    other["agent"]["name"] = name
+    change(other)
+    return json_text(other).encode()
+
+
+def test_api_describes_itself(server) -> None:
+    paths = get(server, "/openapi.json").json()["paths"]
+    for path in ("/api/suites", "/api/suites/{name}", "/api/suites/{name}/sha256", "/api/leaderboards",
+                 "/api/leaderboards/{name}", "/api/datasets", "/api/datasets/{name}/{version}/archive",
+                 "/api/submissions/results", "/api/submissions/agent", "/api/submissions/{submission_id}"):
+        assert path in paths, path
+    health = get(server, "/api/health").json()
+    assert health["schema"] == "0001" and health["database"] == server.backend
+
+
+def test_suites_list_download_and_hash(server) -> None:
+    listed = {s["name"]: s for s in get(server, "/api/suites").json()}
+    assert list(listed) == ["narrow-v1", "wide-v1", "narrow-v2", "wide-v2"]
+    response = get(server, "/api/suites/narrow-v2")
+    suite = load_suite("narrow-v2")
+    assert response.content == shipped_path("narrow-v2").read_bytes()
+    assert hashlib.sha256(response.content).hexdigest() == listed["narrow-v2"]["file_sha256"]
+    assert response.headers["x-suite-sha256"] == suite.sha256 == listed["narrow-v2"]["sha256"]
+    assert get(server, "/api/suites/narrow-v2/sha256").json()["sha256"] == suite.sha256
+    assert listed["narrow-v2"]["seeds"] == 2 and listed["narrow-v2"]["pairs"] == len(suite.pairs)
+    hidden = get(server, "/api/suites/narrow-v2-hidden")
+    assert hidden.status_code == 404 and "never serves" in hidden.json()["detail"]
+    assert get(server, "/api/suites/narrow-v9").json()["error"] == "not_found"
+
+
+def test_results_upload_is_rescored_byte_for_byte(server, token, evaluated) -> None:
+    results, data = evaluated
+    answer = post_results(server, token, data)
+    assert answer.status_code == 202, answer.text
+    status = wait_status(server, answer.json()["id"])
+    assert status["status"] == "done", status
+    assert json_text(status["scores"]["narrow-v1"]) == json_text(results["scores"])  # the same bytes
+    board = get(server, "/api/leaderboards/narrow-v1").json()
+    row = next(r for r in board["rows"] if r["submission_id"] == answer.json()["id"])
+    assert row["mean"] == results["scores"]["mean"]["mean"] and row["rank"] >= 1 and row["kind"] == "agent"
+    assert row["curve"] == [p["mean"] for p in results["scores"]["curve"]]
+    assert {r["name"] for r in board["rows"] if r["kind"] == "reference"} >= {"best fixed policy", "random"}
+    page = get(server, "/leaderboards/narrow-v1")  # the HTML page (service.web) shows the same row
+    assert page.status_code == 200 and "random" in page.text
+    entries = [e for e in table_rows(server, "entries") if e["submission_id"] == answer.json()["id"]]
+    assert len(entries) == 1 and json.loads(entries[0]["scores"]) == results["scores"]
+
+
+def _drop_unit(r: dict) -> None:
+    del r["units"][3]
+
+
+def _nan(r: dict) -> None:
+    r["units"][0]["returns"][0] = float("nan")
+
+
+@pytest.mark.parametrize("name, change, status, error, detail", [
+    ("no-units", lambda r: r.pop("units"), 422, "invalid_results", "missing field(s) units"),
+    ("wrong-hash", lambda r: r["suite"].update(sha256="0" * 64), 422, "invalid_results",
+     "is not the shipped narrow-v1's"),
+    ("wrong-seeds", lambda r: r.update(seeds=[0, 5]), 422, "invalid_results", "ranked here with the seeds [0, 1]"),
+    ("missing-unit", _drop_unit, 422, "invalid_results", "missing 1 of 32 units"),
+    ("incomplete", lambda r: r.update(complete=False), 422, "invalid_results", "the run is incomplete"),
+    ("unknown-suite", lambda r: r["suite"].update(name="narrow-v9"), 422, "unknown_suite", "not a public suite"),
+    ("no-scores", lambda r: r["scores"].pop("raw"), 422, "invalid_results", "scores.raw.mean.mean is missing"),
+    ("short-sha", lambda r: r["agent"].update(sha256="abc"), 422, "invalid_results", "agent.sha256 must be 64 hex"),
+])
+def test_malformed_results_are_rejected_with_reasons(server, token, evaluated, name, change, status, error,
+                                                     detail) -> None:
+    answer = post_results(server, token, variant(evaluated[0], f"bad-{name}", change))
+    assert answer.status_code == status, answer.text
+    assert answer.json()["error"] == error and detail in answer.json()["detail"], answer.json()
+
+
+def test_broken_and_oversized_uploads_are_rejected(server, token, evaluated) -> None:
+    cases = [
+        (b"{not json", 400, "invalid_json", "not valid JSON"),
+        (json_text(evaluated[0]).encode().replace(b'"returns": [\n', b'"returns": [\n   NaN,\n', 1), 400,
+         "invalid_json", "NaN is not a JSON number"),
+        (b"", 400, "empty_upload", "is empty"),
+        (b" " * (MAX_RESULTS_MB * 2**20 + 100), 413, "too_large", "limit of 1,048,576 bytes"),
+        (b" " * (MAX_RESULTS_MB * 2**20 + 200_000), 413, "too_large", "larger than this endpoint's limit"),
+    ]
+    for data, status, error, detail in cases:
+        answer = post_results(server, token, data)
+        assert answer.status_code == status, answer.text
+        assert answer.json()["error"] == error and detail in answer.json()["detail"], answer.json()
+    missing = httpx.post(server.url + "/api/submissions/results", headers={"Authorization": f"Bearer {token}"},
+                         data={"other": "x"}, timeout=60)
+    assert missing.status_code == 400 and "file" in missing.json()["detail"], missing.text
+
+
+def _tamper_mean(r: dict) -> None:
+    r["scores"]["mean"]["mean"] += 0.01
+
+
+def _tamper_episode(r: dict) -> None:
+    r["units"][5]["scores"][2] += 0.01
+
+
+def _tamper_normalised(r: dict) -> None:
+    r["units"][7]["normalised_returns"][4] += 0.01
+    r["units"][7]["scores"][4] = r["units"][7]["normalised_returns"][4] / load_suite("narrow-v1").pairs[3].max_expected
+
+
+@pytest.mark.parametrize("change, reason", [
+    (_tamper_mean, "stored mean score 0.4"),
+    (_tamper_episode, "episode 2: score is not normalised return / the pair's max-expected baseline"),
+    (_tamper_normalised, "episode 4: normalised return"),
+])
+def test_tampered_results_are_rejected_after_rescoring(server, token, evaluated, change, reason) -> None:
+    answer = post_results(server, token, variant(evaluated[0], f"tampered-{change.__name__}", change))
+    assert answer.status_code == 202, answer.text  # the schema is fine: only re-scoring finds it
+    status = wait_status(server, answer.json()["id"])
+    assert status["status"] == "rejected" and reason in status["reason"], status
+    assert status["scores"] == {} and status["jobs"][0]["state"] == "rejected"
+    board = get(server, "/api/leaderboards/narrow-v1").json()
+    assert answer.json()["id"] not in {r["submission_id"] for r in board["rows"]}
+
+
+def test_replayed_uploads_are_rejected(server, token, evaluated) -> None:
+    data = variant(evaluated[0], "replayed")
+    first = post_results(server, token, data)
+    assert first.status_code == 202
+    again = post_results(server, token, data)
+    assert again.status_code == 409 and again.json()["error"] == "replayed"
+    assert f"submission {first.json()['id']}" in again.json()["detail"]
+    retimed = variant(evaluated[0], "replayed", lambda r: r["timing"].update(wall_time=123.0, finished="2031-01-01"))
+    assert post_results(server, token, retimed).status_code == 409  # the same run with another timing
+    assert wait_status(server, first.json()["id"])["status"] == "done"
+    assert sum(1 for s in table_rows(server, "submissions") if s["agent_name"] == "replayed") == 1
+
+
+def test_tokens_are_required_and_stored_hashed(server, token, evaluated) -> None:
+    data = variant(evaluated[0], "tokens")
+    assert post_results(server, None, data).json()["error"] == "missing_token"
+    wrong = post_results(server, "mewa_not-a-token", data)
+    assert wrong.status_code == 401 and wrong.json()["error"] == "invalid_token"
+    rows = {r["name"]: r for r in table_rows(server, "tokens")}
+    assert rows["alice"]["token_hash"] == hashlib.sha256(token.encode()).hexdigest()
+    assert all(token not in json.dumps(r) for r in rows.values())
+    bob = server.token("bob")
+    db = ["--db", server.db] if server.db else []
+    subprocess.run([*CLI, "serve", "token", "revoke", "bob", "--data-dir",
+                    str(server.data_dir), *db], check=True, capture_output=True, timeout=120)
+    assert post_results(server, bob, data).json()["error"] == "invalid_token"
+
+
+def test_rate_limit_and_daily_quota_per_token(server, evaluated) -> None:
+    hasty = server.token("hasty", rate_limit=2)
+    codes = [post_results(server, hasty, b"{}").status_code for _ in range(3)]
+    assert codes[:2] == [422, 422] and codes[2] == 429
+    limited = post_results(server, hasty, b"{}")
+    assert limited.json()["error"] == "rate_limited" and int(limited.headers["retry-after"]) >= 1
+    frugal = server.token("frugal", daily_results=1)
+    assert post_results(server, frugal, variant(evaluated[0], "quota-1")).status_code == 202
+    over = post_results(server, frugal, variant(evaluated[0], "quota-2"))
+    assert over.status_code == 429 and over.json()["error"] == "quota_exceeded"
+    assert "daily quota of 1 results submissions" in over.json()["detail"]
+
+
+def test_cli_submit_and_status(server, token, evaluated, tmp_path) -> None:
+    path = tmp_path / "results.json"
+    path.write_bytes(variant(evaluated[0], "from-the-cli"))
+    cli = CLI
+    submitted = subprocess.run([*cli, "submit", str(path), "--server", server.url, "--token", token, "--wait",
+                                "--timeout", "120"], capture_output=True, text=True, timeout=300,
+                               env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert submitted.returncode == 0, submitted.stdout + submitted.stderr
+    assert "accepted" in submitted.stdout and "done" in submitted.stdout
+    submission = int(submitted.stdout.split("submission ")[1].split()[0])
+    shown = subprocess.run([*cli, "status", str(submission), "--server", server.url], capture_output=True, text=True,
+                           timeout=120, env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert shown.returncode == 0 and "narrow-v1" in shown.stdout and "done" in shown.stdout
+    refused = subprocess.run([*cli, "submit", str(path), "--server", server.url, "--token", token],
+                             capture_output=True, text=True, timeout=120, env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert refused.returncode == 1 and "HTTP 409" in refused.stdout and "already submitted" in refused.stdout
+
+
+# -- datasets --------------------------------------------------------------------------------------
+def test_dataset_archives_support_range_requests(server) -> None:
+    catalog = get(server, "/api/datasets").json()
+    entry = catalog["datasets"][0]
+    assert entry["url"].startswith(server.url + "/api/datasets/")
+    whole = get(server, entry["url"][len(server.url):])
+    assert whole.status_code == 200 and len(whole.content) == entry["size"]
+    assert hashlib.sha256(whole.content).hexdigest() == entry["sha256"] == whole.headers["x-content-sha256"]
+    assert whole.headers["accept-ranges"] == "bytes"
+    part = httpx.get(entry["url"], headers={"Range": "bytes=1000-1999"}, timeout=60)
+    assert part.status_code == 206 and part.content == whole.content[1000:2000]
+    assert part.headers["content-range"] == f"bytes 1000-1999/{entry['size']}"
+    beyond = httpx.get(entry["url"], headers={"Range": f"bytes={entry['size'] + 10}-"}, timeout=60)
+    assert beyond.status_code == 416 and beyond.headers["content-range"] == f"bytes */{entry['size']}"
+    assert get(server, "/api/datasets/no-such-dataset/1.0.0/archive").json()["error"] == "unknown_dataset"
+
+
+def test_datasets_download_from_a_server_resumes(server, tmp_path, monkeypatch) -> None:
+    from mewa_bench.datasets.downloader import download, partial_path
+    from mewa_bench.service.client import server_catalog
+
+    monkeypatch.setenv("MEWA_CACHE_DIR", str(tmp_path / "cache"))
+    catalog = server_catalog(server.url)
+    entry = catalog["datasets"][0]
+    archive = httpx.get(entry["url"], timeout=60).content
+    half = len(archive) // 2
+    partial_path(entry["sha256"]).write_bytes(archive[:half])  # what an interrupted download left
+    calls = []
+    got = download(entry["name"], catalog, tmp_path / "data", progress=lambda done, total: calls.append((done, total)))
+    assert calls[0] == (half, len(archive)) and calls[-1] == (len(archive), len(archive))  # only the rest was fetched
+    assert got.verified and got.sha256 == entry["sha256"] and (got.path / "meta" / "info.json").is_file()
+    assert not partial_path(entry["sha256"]).exists()
+    cli = subprocess.run([*CLI, "datasets", "download", entry["name"], "--server",
+                          server.url, "--dir", str(tmp_path / "cli")], capture_output=True, text=True, timeout=300,
+                         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "MEWA_CACHE_DIR": str(tmp_path / "cache")})
+    assert cli.returncode == 0 and "verified" in cli.stdout, cli.stdout + cli.stderr
+    assert (tmp_path / "cli" / entry["name"] / "meta" / "info.json").is_file()
+
+
+def test_the_command_line_does_not_load_the_web_stack() -> None:
+    probe = ("import sys, mewa_bench.cli\nheavy = {'fastapi', 'starlette', 'sqlalchemy', 'alembic', 'uvicorn', 'httpx'}\n"
+             "print(sorted({m.split('.')[0] for m in sys.modules} & heavy))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120)
+    assert out.stdout.strip() == "[]"

@@ -1,0 +1,360 @@
+"""The service's workers on a real server (SQLite and PostgreSQL): agent submissions evaluated in the sandbox on
+public and hidden suites with `evaluate`'s scores, hostile agents, the job queue, and faults (a worker killed
+mid-job, the server killed mid-upload or before a job ran): nothing lost, nothing half-written, nothing twice."""
+
+from __future__ import annotations
+
+import io
+import json
+import multiprocessing
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import tarfile
+import time
+from pathlib import Path
+
+import pytest
+from service_harness import (AGENTS, BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_agent,
+                             post_results, postgres_cluster, require_sandbox, table_rows, wait_status)
+
+from mewa_bench.files import json_text
+
+pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+
+
+@pytest.fixture(scope="session")
+def postgres():
+    """The session's PostgreSQL cluster (None without PostgreSQL: the postgresql variants skip, or fail in CI)."""
+    return postgres_cluster()
+HIDDEN = "narrow-v1-hidden"
+PACED_ARGS = {"delay": "0.0005"}
+PACED_AGENT = '''"""Random play, reseeded per unit, sleeping `delay` seconds per act: a run long enough to interrupt."""
+import time
+
+import numpy as np
+
+
+class Agent:
+    def __init__(self, observation_space, action_space, delay="0"):
+        self.delay, self.rng = float(delay), np.random.default_rng(0)
+
+    def reset_task(self, seed=None):
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, observation):
+        time.sleep(self.delay)
+        return int(self.rng.integers(0, 4))
+'''
+
+
+@pytest.fixture(scope="session")
+def hidden_dir(tmp_path_factory) -> Path:
+    """A data dir's hidden/ folder with narrow-v1-hidden generated once (about 10 s), copied into each server's."""
+    from mewa_bench.service.hidden import hidden_suites
+
+    data = tmp_path_factory.mktemp("hidden-source")
+    hidden_suites(data, [HIDDEN])
+    return data / "hidden"
+
+
+def new_server(tmp_path_factory, backend: str, postgres, hidden_dir: Path | None, *options: str) -> Server:
+    db = database_url(backend, postgres)
+    data = tmp_path_factory.mktemp(f"jobs-{backend}") / "data"
+    if hidden_dir is not None:
+        shutil.copytree(hidden_dir, data / "hidden")
+    else:
+        options = (*options, "--no-hidden")
+    return Server(data, db, "--seeds", "2", *options).start()
+
+
+def evaluate_cli(tmp_path: Path, agent: Path, suite: str | Path, *args: str) -> dict:
+    """`mewa-bench evaluate` on seeds 0 and 1: the scores the service must reproduce."""
+    out = tmp_path / f"evaluate-{agent.stem}-{Path(str(suite)).stem}.json"
+    subprocess.run([*CLI, "evaluate", str(agent), "--suite", str(suite), "--seeds", "2", "--out", str(out), *args],
+                   check=True, capture_output=True, timeout=600)
+    return json.loads(out.read_text())
+
+
+@pytest.fixture(scope="session")
+def references(tmp_path_factory, hidden_dir) -> dict[str, dict]:
+    """`mewa-bench evaluate` of the random agent on narrow-v1 and on its hidden twin, and of the paced agent."""
+    folder = tmp_path_factory.mktemp("references")
+    paced = folder / "paced.py"
+    paced.write_text(PACED_AGENT)
+    return {"public": evaluate_cli(folder, RANDOM_AGENT, "narrow-v1"),
+            "hidden": evaluate_cli(folder, RANDOM_AGENT, hidden_dir / f"{HIDDEN}.json"),
+            "paced": evaluate_cli(folder, paced, "narrow-v1", *[f"--agent-arg={k}={v}" for k, v in PACED_ARGS.items()])}
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_agent_scores_on_public_and_hidden_boards_equal_evaluate(backend, tmp_path_factory, postgres, hidden_dir,
+                                                                 references) -> None:
+    require_sandbox()
+    server = new_server(tmp_path_factory, backend, postgres, hidden_dir, "--workers", "2")
+    try:
+        token = server.token("carol")
+        answer = post_agent(server, token, RANDOM_AGENT, "narrow-v1", name="random")
+        assert answer.status_code == 202, answer.text
+        public, hidden = references["public"], references["hidden"]  # the server's hidden suite is this one
+        status = wait_status(server, answer.json()["id"], timeout=300)
+        assert status["status"] == "done", status
+        assert [(j["board"], j["hidden"]) for j in status["jobs"]] == [("narrow-v1", False), (HIDDEN, True)]
+        assert json_text(status["scores"]["narrow-v1"]) == json_text(public["scores"])  # byte for byte
+        assert json_text(status["scores"][HIDDEN]) == json_text(hidden["scores"])
+        board = get(server, f"/api/leaderboards/{HIDDEN}").json()
+        assert board["hidden"] and board["suite"] is None and board["public_twin"] == "narrow-v1"
+        assert [r["name"] for r in board["rows"] if r["kind"] == "agent"] == ["random"]
+        listed = {b["board"]: b for b in get(server, "/api/leaderboards").json()}
+        assert listed[HIDDEN]["hidden"] and listed[HIDDEN]["entries"] == 1 and listed["narrow-v1"]["entries"] == 1
+        assert get(server, f"/api/suites/{HIDDEN}").status_code == 404
+        again = post_agent(server, token, RANDOM_AGENT, "narrow-v1", name="random")
+        assert again.status_code == 409 and again.json()["error"] == "replayed"
+    finally:
+        server.stop()
+
+
+def _archive(members: dict[str, bytes], links: tuple[str, ...] = ()) -> bytes:
+    buffer = io.BytesIO()
+    with tarfile.open(fileobj=buffer, mode="w:gz") as tar:
+        for name, data in members.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+        for name in links:
+            info = tarfile.TarInfo(name)
+            info.type, info.linkname = tarfile.SYMTYPE, "/etc/passwd"
+            tar.addfile(info)
+    return buffer.getvalue()
+
+
+CHECKPOINT_AGENT = '''"""Plays the action written in weights.json beside this file (its checkpoint)."""
+import json
+from pathlib import Path
+
+
+class Agent:
+    def __init__(self, observation_space, action_space):
+        self.action = json.loads(Path(__file__).with_name("weights.json").read_text())["action"]
+
+    def act(self, observation):
+        return self.action
+'''
+
+
+def test_agent_uploads_are_checked_and_hostile_agents_fail_with_reasons(tmp_path_factory, tmp_path, postgres,
+                                                                        hidden_dir) -> None:
+    require_sandbox()
+    server = new_server(tmp_path_factory, "sqlite", postgres, hidden_dir, "--workers", "2")
+    try:
+        token = server.token("mallory")
+        bad = {"not-python.py": (b"def make_agent(:\n", "line 1"), "no-agent.py": (b"x = 1\n", "defines neither"),
+               "latin.py": (b"\xff\xfe", "not UTF-8")}
+        for name, (source, detail) in bad.items():
+            path = tmp_path / name
+            path.write_bytes(source)
+            answer = post_agent(server, token, path)
+            assert answer.status_code == 422 and detail in answer.json()["detail"], answer.text
+        unknown = post_agent(server, token, RANDOM_AGENT, "narrow-v9", name="random")
+        assert unknown.status_code == 422 and unknown.json()["error"] == "unknown_suite"
+        agent = tmp_path / "constant.py"
+        agent.write_text(CHECKPOINT_AGENT)
+        for members, links, detail in (({"../weights.json": b"{}"}, (), "leaves the archive directory"),
+                                       ({"agent.py": b"x"}, (), "would replace the agent file"),
+                                       ({"weights.json": b"{}"}, ("link",), "is a link")):
+            answer = post_agent(server, token, agent, checkpoint=("c.tar.gz", _archive(members, links)))
+            assert answer.status_code == 422 and detail in answer.json()["detail"], answer.text
+        assert post_agent(server, token, agent, checkpoint=("c.tar.gz", b"not a tar")).json()["error"] == "invalid_checkpoint"
+        good = post_agent(server, token, agent, checkpoint=("c.tar.gz", _archive({"weights.json": b'{"action": 2}'})))
+        assert good.status_code == 202, good.text
+
+        hidden_file = server.data_dir / "hidden" / f"{HIDDEN}.json"
+        reader = post_agent(server, token, AGENTS / "file_agent.py", name="reader",
+                            agent_args={"path": str(hidden_file), "mode": "read"})
+        network = post_agent(server, token, AGENTS / "network_agent.py", name="network", agent_args={"how": "python"})
+        raw = post_agent(server, token, AGENTS / "network_agent.py", name="raw-network", agent_args={"how": "raw"})
+        for answer in (reader, network, raw):
+            assert answer.status_code == 202, answer.text
+        assert wait_status(server, good.json()["id"], timeout=300)["status"] == "done"
+        read = wait_status(server, reader.json()["id"], timeout=300)
+        assert read["status"] == "rejected" and "sandbox rule broken (filesystem)" in read["reason"], read
+        assert str(server.data_dir) not in read["reason"] and "<data dir>/hidden" in read["reason"]
+        for answer in (network, raw):
+            status = wait_status(server, answer.json()["id"], timeout=300)
+            assert status["status"] == "rejected" and "network" in status["reason"].lower(), status
+        boards = {b["board"]: b["entries"] for b in get(server, "/api/leaderboards").json()}
+        assert boards["narrow-v1"] == 1 and boards[HIDDEN] == 1  # only the good agent
+    finally:
+        server.stop()
+
+
+def _job(server: Server, submission_id: int, board: str = "narrow-v1") -> dict:
+    return next(j for j in table_rows(server, "jobs") if j["submission_id"] == submission_id and j["board"] == board)
+
+
+def _units_on_disk(path: Path) -> int:
+    try:
+        return len(json.loads(path.read_text())["units"])
+    except (OSError, ValueError):
+        return 0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_worker_killed_mid_job_resumes_from_its_last_finished_unit(backend, tmp_path_factory, tmp_path, postgres,
+                                                                      references) -> None:
+    require_sandbox()
+    server = new_server(tmp_path_factory, backend, postgres, None, "--workers", "1", "--lease-seconds", "2")
+    paced = tmp_path / "paced.py"
+    paced.write_text(PACED_AGENT)
+    try:
+        token = server.token("dave")
+        answer = post_agent(server, token, paced, "narrow-v1", agent_args=PACED_ARGS)
+        assert answer.status_code == 202, answer.text
+        submission = answer.json()["id"]
+        deadline = time.monotonic() + 120
+        while (job := _job(server, submission))["state"] != "running" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        results = server.data_dir / "jobs" / str(job["id"]) / "results.json"
+        while not 0 < _units_on_disk(results) < 32 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        worker = int(_job(server, submission)["lease_owner"].split(":")[1])
+        os.kill(worker, signal.SIGKILL)  # mid-job: some units are in the results file, the rest are not
+        kept = _units_on_disk(results)
+        assert 0 < kept < 32, kept
+        reference = references["paced"]
+        status = wait_status(server, submission, timeout=300)
+        assert status["status"] == "done", status
+        job = _job(server, submission)
+        assert job["attempts"] == 2 and job["resumed_units"] == kept  # the second claim started after those units
+        finished = json.loads(results.read_text())
+        assert finished["units"] == reference["units"]  # the same as an uninterrupted run, each unit once
+        assert json_text(status["scores"]["narrow-v1"]) == json_text(reference["scores"])
+        assert [e["job_id"] for e in table_rows(server, "entries")] == [job["id"]]
+    finally:
+        server.stop()
+
+
+def _start_upload(server: Server, token: str, total: int) -> socket.socket:
+    """A results upload that has sent its headers and half its body, then stalls."""
+    boundary = "mewa-boundary"
+    head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"file\"; filename=\"r.json\"\r\n"
+            f"Content-Type: application/json\r\n\r\n").encode()
+    body_length = len(head) + total + len(f"\r\n--{boundary}--\r\n")
+    connection = socket.create_connection(("127.0.0.1", server.port))
+    connection.sendall((f"POST /api/submissions/results HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {token}\r\n"
+                        f"Content-Type: multipart/form-data; boundary={boundary}\r\n"
+                        f"Content-Length: {body_length}\r\n\r\n").encode() + head + b"{" + b" " * (total // 2))
+    return connection
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_server_killed_mid_upload_or_before_scoring_loses_nothing(backend, tmp_path_factory, postgres,
+                                                                  references) -> None:
+    server = new_server(tmp_path_factory, backend, postgres, None, "--workers", "1", "--lease-seconds", "2")
+    try:
+        token = server.token("erin")
+        results = references["public"]
+        stalled = _start_upload(server, token, 400_000)
+        time.sleep(0.5)
+        server.kill()  # the server and its worker, mid-upload
+        stalled.close()
+        assert table_rows(server, "submissions") == [] and table_rows(server, "jobs") == []
+        server.start()
+        assert not list((server.data_dir / "uploads" / "results").glob("*"))  # nothing half-written either
+
+        answer = post_results(server, token, json_text(results).encode())
+        assert answer.status_code == 202
+        server.kill()  # accepted, and perhaps being scored: the row and its job survive
+        server.start()
+        status = wait_status(server, answer.json()["id"], timeout=120)
+        assert status["status"] == "done" and json_text(status["scores"]["narrow-v1"]) == json_text(results["scores"])
+        assert len(table_rows(server, "submissions")) == 1 and len(table_rows(server, "entries")) == 1
+        server.stop()
+        server.start()  # a clean stop and start changes nothing
+        assert len(table_rows(server, "entries")) == 1 and get(server, "/api/leaderboards").json()[0]["entries"] == 1
+    finally:
+        server.stop()
+
+
+# -- the queue itself ------------------------------------------------------------------------------
+def _claim_all(url: str, owner: str, out: multiprocessing.Queue) -> None:
+    from mewa_bench.service.db import make_engine, session_factory, transaction
+    from mewa_bench.service.jobs import claim, close
+
+    engine = make_engine(url)
+    sessions = session_factory(engine)
+    claimed = []
+    while (job := claim(sessions, owner, 30.0)) is not None:
+        claimed.append(job.id)
+        with transaction(sessions) as s:
+            assert close(s, job.id, owner, "done")
+    out.put(claimed)
+    engine.dispose()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_queue_claims_each_job_once_and_expires_leases(backend, tmp_path, postgres) -> None:
+    from mewa_bench.service.db import make_engine, migrate, session_factory, transaction
+    from mewa_bench.service.jobs import add_job, claim, close, give_up_expired, renew
+    from mewa_bench.service.models import Submission, Token
+
+    url = database_url(backend, postgres) or f"sqlite:///{tmp_path / 'queue.db'}"
+    engine = make_engine(url)
+    migrate(engine)
+    sessions = session_factory(engine)
+    with transaction(sessions) as s:
+        s.add(Token(name="q", token_hash="0" * 64, created=0.0, revoked=False))
+        s.flush()
+        for i in range(60):
+            sub = Submission(token_id=1, kind="results", suite="narrow-v1", digest=f"{i:064d}", agent_name="a",
+                             agent_sha256="0" * 64, file="x", created=0.0)
+            s.add(sub)
+            s.flush()
+            add_job(s, sub.id, "score", "narrow-v1", False, (0,), max_attempts=2)
+    context = multiprocessing.get_context("spawn")
+    out = context.Queue()
+    workers = [context.Process(target=_claim_all, args=(url, f"w{i}", out)) for i in range(4)]
+    for w in workers:
+        w.start()
+    claimed = [job for _ in workers for job in out.get(timeout=120)]
+    for w in workers:
+        w.join(60)
+    assert sorted(claimed) == list(range(1, 61))  # every job once, none twice
+
+    with transaction(sessions) as s:
+        add_job(s, 1, "evaluate", "wide-v1", False, (0,), max_attempts=2)
+    now = time.time()  # the clock is passed explicitly: the test does not depend on the machine's speed
+    first = claim(sessions, "a", lease_seconds=10.0, now=now)
+    assert first is not None and first.attempts == 1 and claim(sessions, "b", 10.0, now=now + 9) is None
+    second = claim(sessions, "b", lease_seconds=10.0, now=now + 11)  # the lease expired: another worker takes it
+    assert second is not None and second.id == first.id and second.attempts == 2
+    assert not renew(sessions, first.id, "a", 10.0)  # the first owner can no longer touch it
+    with transaction(sessions) as s:
+        assert not close(s, first.id, "a", "done")
+    later = now + 11 + 3600  # b stopped renewing long ago
+    assert claim(sessions, "c", 10.0, now=later) is None  # two attempts were allowed
+    assert give_up_expired(sessions, now=later) == 1
+    with sessions() as s:
+        from mewa_bench.service.models import Job
+
+        job = s.get(Job, first.id)
+        assert job.state == "failed" and "gave up" in job.error
+    engine.dispose()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_migrations_create_exactly_the_models(backend, tmp_path, postgres) -> None:
+    from alembic.autogenerate import compare_metadata
+    from alembic.runtime.migration import MigrationContext
+
+    from mewa_bench.service.db import make_engine, migrate
+    from mewa_bench.service.models import Base
+
+    engine = make_engine(database_url(backend, postgres) or f"sqlite:///{tmp_path / 'm.db'}")
+    migrate(engine)
+    migrate(engine)  # idempotent
+    with engine.connect() as connection:
+        assert compare_metadata(MigrationContext.configure(connection), Base.metadata) == []
+    engine.dispose()
