@@ -4,9 +4,10 @@ The server is started here (`mewa-bench serve`, SQLite in a temp data dir, or `-
 with `--workers` evaluation workers and boards ranked with `--seeds` seeds. Twenty submitters each get
 a token (made straight in the database before the clock) and send their share of the load, all at once.
 
-- Results uploads: the shipped narrow-v1 results files (every agent in submissions/) cut to the board's
-  seeds and scored again (`protocol.results.finish`, as `evaluate` does), each upload under its own agent
-  name, so that none is a replay of another (the server's replay check hashes the whole run but its timing).
+- Results uploads: distinct runs, since the server refuses the same episodes under another name as a
+  replay: the shipped narrow-v1 results files (every agent in submissions/) cut to the board's seeds and
+  scored again (`protocol.results.finish`, as `evaluate` does), then runs of the random agent with its
+  agent arg `seed` = 1000, 1001, ... (evaluated here, in-process, before the clock starts).
 - Agent submissions: submissions/random/agent.py with its agent arg `seed` = 0..19 (distinct submissions:
   the replay check hashes the agent file, its args and the suite), evaluated in the sandbox on narrow-v1
   (and on its hidden twin with `--hidden`).
@@ -14,7 +15,7 @@ a token (made straight in the database before the clock) and send their share of
 Then it waits until every submission is final and checks that each was stored and scored exactly once:
 one submission row and one stored file per upload, its jobs all done, one board entry per job and none
 else, each re-scored upload's scores equal to those `finish` wrote, every status done in the API, and a
-replayed upload refused with 409. It prints throughput and p50/p95 latency of the uploads (until
+replayed upload (also under another agent name) refused with 409. It prints throughput and p50/p95 latency of the uploads (until
 accepted, and until scored) and of the agent evaluations (until accepted, and until done).
 
     .venv/bin/python benchmarks/service_load.py [--uploads 200] [--agents 20] [--seeds 4] [--workers 2] [--db URL]
@@ -83,12 +84,22 @@ def base_results(seeds: int) -> list[dict[str, Any]]:
     return out
 
 
-def results_uploads(count: int, seeds: int, tokens: list[str]) -> list[Sent]:
-    """`count` distinct results uploads (each base file under new agent names), spread over the tokens."""
-    bases = base_results(seeds)
+def random_runs(count: int, seeds: int, scratch: Path) -> list[dict[str, Any]]:
+    """`count` runs of the random agent, each with its own `seed` arg (so its own episodes)."""
+    from mewa_bench.protocol.config import EvalConfig
+    from mewa_bench.protocol.runner import evaluate
+
+    return [evaluate(EvalConfig(agent_path=AGENT, suite=SUITE, seeds=tuple(range(seeds)), name=f"random-{1000 + i}",
+                                agent_args={"seed": str(1000 + i)}, isolated=False, out=scratch / f"run-{i}.json"))[0]
+            for i in range(count)]
+
+
+def results_uploads(count: int, seeds: int, tokens: list[str], scratch: Path) -> list[Sent]:
+    """`count` distinct results uploads (shipped runs, then random-agent runs), spread over the tokens."""
+    runs = base_results(seeds)[:count]
+    runs += random_runs(count - len(runs), seeds, scratch)
     uploads = []
-    for i in range(count):
-        results = bases[i % len(bases)]
+    for i, results in enumerate(runs):
         name = f"{results['agent']['name']}-load-{i:03d}"
         renamed = {**results, "agent": {**results["agent"], "name": name}}
         uploads.append(Sent("results", name, tokens[i % len(tokens)], body=json_text(renamed).encode(),
@@ -304,12 +315,17 @@ def check_exactly_once(items: list[Sent], data_dir: Path, db: str | None, boards
 
 
 def replay_is_refused(url: str, item: Sent) -> bool:
-    """Posting an accepted upload again answers 409 naming the first submission."""
+    """Posting an accepted upload again, as it was and under another agent name, answers 409 naming it."""
     import httpx
 
-    response = httpx.post(f"{url}/api/submissions/results", headers={"Authorization": f"Bearer {item.token}"},
-                          files={"file": ("again.json", item.body, "application/json")}, timeout=120)
-    return response.status_code == 409 and f"submission {item.submission_id}" in response.json()["detail"]
+    results = json.loads(item.body)
+    renamed = {**results, "agent": {**results["agent"], "name": "someone-else"}}
+    for body in (item.body, json_text(renamed).encode()):
+        response = httpx.post(f"{url}/api/submissions/results", headers={"Authorization": f"Bearer {item.token}"},
+                              files={"file": ("again.json", body, "application/json")}, timeout=120)
+        if not (response.status_code == 409 and f"submission {item.submission_id}" in response.json()["detail"]):
+            return False
+    return True
 
 
 # -- the report ------------------------------------------------------------------------------------
@@ -337,14 +353,17 @@ def report(items: list[Sent], start: float, burst_end: float, base: Baseline, wo
     print(f"{f'results uploads scored/s ({workers} workers)':<44}{score_rate:>12.1f}{workers / base.score:>12.1f}"
           f"{score_rate * base.score / workers:>8.2f}")
     if agents:
-        evaluating = max(i.final for i in agents) - max(i.final for i in uploads)
-        eval_rate = len(agents) / evaluating * 60
-        ideal = workers / base.evaluate * 60
+        agents_by = max(i.final for i in agents) - start
         label = f"agents evaluated/min ({workers} workers)"
-        print(f"{label:<44}{eval_rate:>12.1f}{ideal:>12.1f}{eval_rate / ideal:>8.2f}")
-        print(f"(agents evaluated/min: from the last upload scored to the last agent done; the workers take re-scoring "
-              f"jobs first. Baseline: one at a time in this process, {base.check * 1000:.0f} ms to check an upload, "
-              f"{base.score * 1000:.0f} ms to re-score one, {base.evaluate:.2f} s to evaluate the agent unsandboxed)")
+        print(f"{label:<44}{len(agents) / agents_by * 60:>12.1f}{workers / base.evaluate * 60:>12.1f}"
+              f"{len(agents) / agents_by * base.evaluate / workers:>8.2f}")
+    work = len(uploads) * base.score + len(agents) * base.evaluate  # seconds, one job at a time in this process
+    all_done = max(i.final for i in uploads + agents) - start
+    print(f"{'every job done in s (work / workers)':<44}{all_done:>12.1f}{work / workers:>12.1f}"
+          f"{work / workers / all_done:>8.2f}")
+    print(f"(the workers take jobs oldest first, so uploads and agents share them: each rate's baseline assumes the "
+          f"workers did nothing else. Baseline: one at a time in this process, {base.check * 1000:.0f} ms to check an "
+          f"upload, {base.score * 1000:.0f} ms to re-score one, {base.evaluate:.2f} s to evaluate the agent unsandboxed)")
 
 
 def main() -> None:
@@ -365,7 +384,7 @@ def main() -> None:
     try:
         tokens = make_tokens(data_dir, args.db, tokens_wanted)
         print(f"building {args.uploads} results files ({args.seeds} seeds, {16 * args.seeds} units each) ...")
-        items = results_uploads(args.uploads, args.seeds, tokens) + agent_submissions(args.agents, tokens)
+        items = results_uploads(args.uploads, args.seeds, tokens, root) + agent_submissions(args.agents, tokens)
         base = measure_baseline(items, args.seeds, root)
         url = f"http://127.0.0.1:{port}"
         print(f"server: {url}, {'database ' + args.db.split('@')[-1] if args.db else 'SQLite'}, {args.workers} "

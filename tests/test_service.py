@@ -8,6 +8,7 @@ import hashlib
 import json
 import subprocess
 import sys
+from typing import Callable
 
 import httpx
 import pytest
@@ -17,6 +18,8 @@ from service_harness import (BACKENDS, CLI, RANDOM_AGENT, Server, database_url, 
 
 from mewa_bench.design.suites import load_suite, shipped_path
 from mewa_bench.files import json_text
+from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.runner import evaluate
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -53,8 +56,24 @@ def evaluated(tmp_path_factory) -> tuple[dict, bytes]:
     return json.loads(out.read_text()), out.read_bytes()
 
 
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> Callable[[str], dict]:
+    """`runs(label)`: a run of its own for each label (the random agent with another `seed` arg, so other
+    episodes: not a replay of any other), evaluated in-process on the board's seeds, once per module."""
+    made: dict[str, dict] = {}
+    folder = tmp_path_factory.mktemp("runs")
+
+    def run(label: str) -> dict:
+        if label not in made:
+            config = EvalConfig(RANDOM_AGENT, seeds=(0, 1), name=label, agent_args={"seed": str(1000 + len(made))},
+                                isolated=False, out=folder / f"{label}.json")
+            made[label] = evaluate(config)[0]
+        return copy.deepcopy(made[label])
+    return run
+
+
 def variant(results: dict, name: str, change=lambda r: None) -> bytes:
-    """The results under another agent name (another run as far as replays go), changed by `change`."""
+    """The results under another agent name, changed by `change` (still the same run for the replay check)."""
     other = copy.deepcopy(results)
     other["agent"]["name"] = name
     change(other)
@@ -166,8 +185,9 @@ def _tamper_normalised(r: dict) -> None:
     (_tamper_episode, "episode 2: score is not normalised return / the pair's max-expected baseline"),
     (_tamper_normalised, "episode 4: normalised return"),
 ])
-def test_tampered_results_are_rejected_after_rescoring(server, token, evaluated, change, reason) -> None:
-    answer = post_results(server, token, variant(evaluated[0], f"tampered-{change.__name__}", change))
+def test_tampered_results_are_rejected_after_rescoring(server, token, runs, change, reason) -> None:
+    label = f"tampered-{change.__name__}"
+    answer = post_results(server, token, variant(runs(label), label, change))
     assert answer.status_code == 202, answer.text  # the schema is fine: only re-scoring finds it
     status = wait_status(server, answer.json()["id"])
     assert status["status"] == "rejected" and reason in status["reason"], status
@@ -176,21 +196,49 @@ def test_tampered_results_are_rejected_after_rescoring(server, token, evaluated,
     assert answer.json()["id"] not in {r["submission_id"] for r in board["rows"]}
 
 
-def test_replayed_uploads_are_rejected(server, token, evaluated) -> None:
-    data = variant(evaluated[0], "replayed")
+def _retime(r: dict) -> None:
+    r["timing"].update(wall_time=123.0, finished="2031-01-01")
+
+
+def _claim(r: dict) -> None:
+    r["agent"].update(name="someone-else", sha256="1" * 64, agent_args={"seed": "7"})
+    r["isolation"]["isolated"] = False
+
+
+def _retouch(r: dict) -> None:
+    r["scores"]["mean"]["low"] -= 1e-12  # an aggregate re-scoring does not compare; still the same episodes
+
+
+def test_replayed_uploads_are_rejected(server, token, runs) -> None:
+    run = runs("replayed")
+    data = json_text(run).encode()
     first = post_results(server, token, data)
     assert first.status_code == 202
-    again = post_results(server, token, data)
-    assert again.status_code == 409 and again.json()["error"] == "replayed"
-    assert f"submission {first.json()['id']}" in again.json()["detail"]
-    retimed = variant(evaluated[0], "replayed", lambda r: r["timing"].update(wall_time=123.0, finished="2031-01-01"))
-    assert post_results(server, token, retimed).status_code == 409  # the same run with another timing
+    for copy_of_it in (data, variant(run, "replayed", _retime), variant(run, "another-name"),
+                       variant(run, "replayed", _claim), variant(run, "replayed", _retouch)):
+        again = post_results(server, token, copy_of_it)
+        assert again.status_code == 409 and again.json()["error"] == "replayed", again.text
+        assert f"submission {first.json()['id']}" in again.json()["detail"]
     assert wait_status(server, first.json()["id"])["status"] == "done"
-    assert sum(1 for s in table_rows(server, "submissions") if s["agent_name"] == "replayed") == 1
+    assert sum(1 for s in table_rows(server, "submissions") if s["agent_name"] in ("replayed", "another-name")) == 1
+    other = post_results(server, token, json_text(runs("not-a-replay")).encode())  # other episodes: another run
+    assert other.status_code == 202, other.text
 
 
-def test_tokens_are_required_and_stored_hashed(server, token, evaluated) -> None:
-    data = variant(evaluated[0], "tokens")
+def test_a_rejected_upload_does_not_block_the_genuine_run(server, token, runs) -> None:
+    run = runs("genuine")
+    tampered = variant(run, "genuine", _tamper_mean)  # the same episodes, a false mean: the same digest
+    first = post_results(server, token, tampered)
+    assert first.status_code == 202, first.text
+    assert wait_status(server, first.json()["id"])["status"] == "rejected"
+    genuine = post_results(server, token, json_text(run).encode())
+    assert genuine.status_code == 202, genuine.text
+    assert wait_status(server, genuine.json()["id"])["status"] == "done"
+    assert post_results(server, token, json_text(run).encode()).json()["error"] == "replayed"
+
+
+def test_tokens_are_required_and_stored_hashed(server, token, runs) -> None:
+    data = json_text(runs("tokens")).encode()
     assert post_results(server, None, data).json()["error"] == "missing_token"
     wrong = post_results(server, "mewa_not-a-token", data)
     assert wrong.status_code == 401 and wrong.json()["error"] == "invalid_token"
@@ -204,22 +252,22 @@ def test_tokens_are_required_and_stored_hashed(server, token, evaluated) -> None
     assert post_results(server, bob, data).json()["error"] == "invalid_token"
 
 
-def test_rate_limit_and_daily_quota_per_token(server, evaluated) -> None:
+def test_rate_limit_and_daily_quota_per_token(server, runs) -> None:
     hasty = server.token("hasty", rate_limit=2)
     codes = [post_results(server, hasty, b"{}").status_code for _ in range(3)]
     assert codes[:2] == [422, 422] and codes[2] == 429
     limited = post_results(server, hasty, b"{}")
     assert limited.json()["error"] == "rate_limited" and int(limited.headers["retry-after"]) >= 1
     frugal = server.token("frugal", daily_results=1)
-    assert post_results(server, frugal, variant(evaluated[0], "quota-1")).status_code == 202
-    over = post_results(server, frugal, variant(evaluated[0], "quota-2"))
+    assert post_results(server, frugal, json_text(runs("quota-1")).encode()).status_code == 202
+    over = post_results(server, frugal, json_text(runs("quota-2")).encode())
     assert over.status_code == 429 and over.json()["error"] == "quota_exceeded"
     assert "daily quota of 1 results submissions" in over.json()["detail"]
 
 
-def test_cli_submit_and_status(server, token, evaluated, tmp_path) -> None:
+def test_cli_submit_and_status(server, token, runs, tmp_path) -> None:
     path = tmp_path / "results.json"
-    path.write_bytes(variant(evaluated[0], "from-the-cli"))
+    path.write_bytes(json_text(runs("from-the-cli")).encode())
     cli = CLI
     submitted = subprocess.run([*cli, "submit", str(path), "--server", server.url, "--token", token, "--wait",
                                 "--timeout", "120"], capture_output=True, text=True, timeout=300,

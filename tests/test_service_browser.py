@@ -39,8 +39,8 @@ HOSTILE_NAME = '<img src="x" onerror="document.title=\'injected\'"> $$'
 
 
 def shipped_results(agent: str, name: str | None = None) -> dict[str, Any]:
-    """A shipped narrow-v1 results file cut to seeds 0..SEEDS-1 and scored again; renamed if `name`
-    (another run as far as the server's replay check goes)."""
+    """A shipped narrow-v1 results file cut to seeds 0..SEEDS-1 and scored again; renamed if `name` (still
+    the same run for the server's replay check: each shipped agent's file can be uploaded once)."""
     results = json.loads((REPO / "submissions" / agent / "results-narrow-v1.json").read_text())
     results["units"] = [u for u in results["units"] if u["seed"] < SEEDS]
     results["seeds"] = list(range(SEEDS))
@@ -198,7 +198,7 @@ def test_leaderboard_page_shows_the_api_ranking_and_the_figure(page, server, tok
 
 
 def test_a_rejected_submission_shows_its_reason(page, server, token, worker) -> None:
-    tampered = shipped_results("random", "tampered")
+    tampered = shipped_results("bayes-explorer", "tampered")  # a run no other test uploads (else: a replay)
     tampered["scores"]["mean"]["mean"] += 0.01  # passes the upload checks; re-scoring finds it
     submission = submit(server, token, tampered)
     status = wait_status(server, submission)

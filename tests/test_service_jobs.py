@@ -341,6 +341,10 @@ def test_queue_claims_each_job_once_and_expires_leases(backend, tmp_path, postgr
 
         job = s.get(Job, first.id)
         assert job.state == "failed" and "gave up" in job.error
+        assert s.get(Submission, 1).digest != f"{0:064d}"  # a failed upload gives its digest up ...
+    with transaction(sessions) as s:  # ... so the same upload can come again
+        s.add(Submission(token_id=1, kind="results", suite="narrow-v1", digest=f"{0:064d}", agent_name="a",
+                         agent_sha256="0" * 64, file="x", created=0.0))
     engine.dispose()
 
 

@@ -10,12 +10,13 @@ the claim is conditional on the lease owner, so a worker that lost its lease can
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from mewa_bench.service.models import DONE, FAILED, QUEUED, REJECTED, RUNNING, Job
+from mewa_bench.service.models import DONE, FAILED, QUEUED, REJECTED, RUNNING, Job, Submission
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -57,12 +58,26 @@ def give_up_expired(sessions: sessionmaker[Session], now: float | None = None) -
 
     now = time.time() if now is None else now
     with sessions() as session, session.begin():
-        result = session.execute(
+        given_up = session.execute(
             update(Job).where(Job.state == RUNNING, Job.lease_expires < now, Job.attempts >= Job.max_attempts)
             .values(state=FAILED, finished=now, lease_owner=None, lease_expires=None,
                     error="the service gave up: the worker running this job stopped (crashed, killed or lost its "
-                          "lease) on each of its attempts"))
-        return result.rowcount
+                          "lease) on each of its attempts")
+            .returning(Job.submission_id)).scalars().all()
+        for submission_id in set(given_up):
+            free_digest(session, submission_id)
+        return len(given_up)
+
+
+def free_digest(session: Session, submission_id: int) -> None:
+    """Let the upload of a rejected or failed submission come again: its digest no longer blocks a replay.
+
+    The row keeps a digest derived from the old one and its id (unique, never an upload's), so the
+    genuine run can follow a tampered copy of it, and an upload that failed on the server can be retried.
+    """
+    submission = session.get(Submission, submission_id)
+    if submission is not None:
+        submission.digest = hashlib.sha256(f"freed/{submission.id}/{submission.digest}".encode()).hexdigest()
 
 
 def claim(sessions: sessionmaker[Session], owner: str, lease_seconds: float, now: float | None = None) -> Claimed | None:
@@ -134,9 +149,11 @@ def close(session: Session, job_id: int, owner: str, state: str, error: str | No
     values: dict = {"state": state, "error": error, "finished": time.time(), "lease_owner": None, "lease_expires": None}
     if state == DONE:
         values["units_done"] = Job.units_total  # the last units finished after the last progress record
-    result = session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
-                             .values(**values))
-    return result.rowcount == 1
+    closed = session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
+                             .values(**values).returning(Job.submission_id)).scalars().all()
+    if closed and state != DONE:
+        free_digest(session, closed[0])
+    return len(closed) == 1
 
 
 def queue_counts(session: Session) -> dict[str, int]:

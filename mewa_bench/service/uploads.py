@@ -80,11 +80,20 @@ def parse_results(data: bytes) -> Any:
         raise bad_request("invalid_json", f"the results file is not valid JSON: {e}") from None
 
 
-def results_digest(results: dict[str, Any]) -> str:
-    """What makes two results uploads the same run: the file without its timing, machine and execution."""
-    from mewa_bench.protocol.results import stable_view
+# What a run is: the suite, seeds and env it was played on and the episodes it played. Who claims it,
+# how it was isolated and the aggregates derived from the episodes are not part of it, so the same
+# episodes under a new agent name, or with retouched aggregates, are a replay (one run cannot fill a
+# board). A rejected or failed submission gives its digest up (`jobs.free_digest`).
+RUN_FIELDS = ("suite", "seeds", "episodes_per_pair", "env", "protocol_version")
+UNIT_FIELDS = ("pair", "seed", "task", "env_seeds", "returns", "lengths")
 
-    return hashlib.sha256(b"results\0" + canonical_json(stable_view(results)).encode()).hexdigest()
+
+def results_digest(results: dict[str, Any]) -> str:
+    """What makes two results uploads the same run: where it was played and its episodes, whoever claims it."""
+    run = {field: results[field] for field in RUN_FIELDS}
+    run["units"] = sorted(({field: u[field] for field in UNIT_FIELDS} for u in results["units"]),
+                          key=lambda u: (u["pair"], u["seed"]))
+    return hashlib.sha256(b"results\0" + canonical_json(run).encode()).hexdigest()
 
 
 def check_results(data: bytes, settings: Settings, suites: Any) -> CheckedResults:

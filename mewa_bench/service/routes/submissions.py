@@ -87,7 +87,7 @@ def _refuse_replay(s: Session, digest: str, kind: str) -> None:
 
     earlier = s.scalar(select(Submission.id).where(Submission.digest == digest))
     if earlier is not None:
-        what = "results file (the same run: identical units and header)" if kind == RESULTS else \
+        what = "run (the same suite, seeds and episodes, whatever agent name it is under)" if kind == RESULTS else \
             "agent (the same agent file, checkpoint, agent args and suite)"
         raise ApiError(409, "replayed", f"this {what} was already submitted as submission {earlier} "
                                         f"(/api/submissions/{earlier}); a replayed upload is not scored again")
