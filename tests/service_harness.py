@@ -144,8 +144,9 @@ def require_sandbox() -> None:
 class Server:
     """`mewa-bench serve` in a subprocess; restartable on the same data dir and database."""
 
-    def __init__(self, data_dir: Path, db: str | None, *options: str) -> None:
+    def __init__(self, data_dir: Path, db: str | None, *options: str, env: dict[str, str] | None = None) -> None:
         self.data_dir, self.db, self.options = data_dir, db, list(options)
+        self.env = dict(env or {})  # added to the server's environment at each start (e.g. a crash point)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.process: subprocess.Popen | None = None
@@ -159,7 +160,7 @@ class Server:
 
     def start(self) -> Server:
         """Start the server; returns when it answers."""
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1", **self.env}
         with open(self.log, "a") as log:
             self.process = subprocess.Popen(self.command(), stdout=log, stderr=subprocess.STDOUT, env=env,
                                             start_new_session=True)

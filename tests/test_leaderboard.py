@@ -13,7 +13,8 @@ import pytest
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.leaderboard import LeaderboardReport, build_leaderboards
 from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, write_results
-from mewa_bench.protocol.config import default_seeds
+from mewa_bench.game.normalise import return_bounds
+from mewa_bench.protocol.config import default_seeds, env_seed
 from mewa_bench.protocol.scoring import score_units
 
 SEEDS = list(default_seeds("narrow-v1"))  # only runs with the protocol's default seeds are ranked
@@ -49,8 +50,11 @@ def make_results(suite: Suite, name: str, start: float, gain: float, privileged:
         for s in SEEDS:
             curve = start + gain * np.arange(K) / (K - 1) + rng.normal(0.0, 0.01, K)
             normalised = (curve * pair.max_expected).tolist()
-            units.append({"pair": pair.index, "seed": s, "task": pair.task_index, "env_seeds": list(range(K)),
-                          "returns": normalised, "normalised_returns": normalised, "lengths": [20] * K,
+            r_min, r_max = return_bounds(suite.tasks[pair.task_index])
+            units.append({"pair": pair.index, "seed": s, "task": pair.task_index,
+                          "env_seeds": [env_seed(suite.sha256, pair.index, s, k) for k in range(K)],
+                          "returns": [r_min + v * (r_max - r_min) for v in normalised],
+                          "normalised_returns": normalised, "lengths": [20] * K,
                           "scores": [v / pair.max_expected for v in normalised]})
     scores = score_units(suite, units, suite.summary["score"]["random_task_specific"])
     return {
@@ -82,11 +86,24 @@ def invalid_variants(suite: Suite) -> dict[str, tuple[object, str]]:
     tampered = {**base, "scores": scores}
     odd_types = {**base, "units": [5] + base["units"][1:]}
     few_seeds = {**base, "seeds": SEEDS[:3], "units": [u for u in base["units"] if u["seed"] < 3]}
+    own_luck = edited_unit(base, 5, "env_seeds", 3, 12345)  # a run may not choose its episodes' seeds
+    zero_steps = edited_unit(base, 6, "lengths", 0, 0)
+    renormalised = edited_unit(base, 7, "normalised_returns", 2, base["units"][7]["normalised_returns"][2] + 0.01)
     return {"results-odd-types.json": (odd_types, "malformed"), "results-wrong-hash.json": (wrong_hash, "sha256"), "results-incomplete.json": (incomplete, "incomplete"),
             "results-missing.json": (missing, f"missing {len(SEEDS)} of {16 * len(SEEDS)} units"),
             "results-schema99.json": (future, "schema_version 99"),
             "results-few-seeds.json": (few_seeds, "default seeds"),
-            "results-tampered.json": (tampered, "mean score"), "results-garbage.json": ("{not json", "not valid JSON")}
+            "results-tampered.json": (tampered, "mean score"), "results-garbage.json": ("{not json", "not valid JSON"),
+            "results-own-luck.json": (own_luck, "episode 3: env seed 12345 is not the protocol's"),
+            "results-zero-steps.json": (zero_steps, "episode 0: length 0 is not a step count in 1..100"),
+            "results-renormalised.json": (renormalised, "episode 2: normalised return")}
+
+
+def edited_unit(results: dict, unit: int, field: str, episode: int, value: object) -> dict:
+    """A copy of `results` with one episode's `field` of one unit replaced."""
+    units = [dict(u) for u in results["units"]]
+    units[unit][field] = [value if k == episode else v for k, v in enumerate(units[unit][field])]
+    return {**results, "units": units}
 
 
 @pytest.fixture(scope="module")

@@ -6,15 +6,15 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import os
 import subprocess
 import sys
 from typing import Callable
 
 import httpx
 import pytest
-from service_harness import (BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_results,
-                             postgres_cluster,
-                             table_rows, wait_status)
+from service_harness import (AGENTS, BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_agent,
+                             post_results, postgres_cluster, table_rows, wait_status)
 
 from mewa_bench.design.suites import load_suite, shipped_path
 from mewa_bench.files import json_text
@@ -29,6 +29,7 @@ def postgres():
     """The session's PostgreSQL cluster (None without PostgreSQL: the postgresql variants skip, or fail in CI)."""
     return postgres_cluster()
 MAX_RESULTS_MB = 1
+MAX_AGENT_MB = 0.05  # agent files and checkpoint archives: 52,428 bytes
 
 
 @pytest.fixture(scope="module", params=BACKENDS)
@@ -36,6 +37,7 @@ def server(request, tmp_path_factory, postgres) -> Server:
     db = database_url(request.param, postgres)
     data = tmp_path_factory.mktemp(f"service-{request.param}") / "data"
     running = Server(data, db, "--seeds", "2", "--workers", "1", "--no-hidden", "--max-results-mb", str(MAX_RESULTS_MB),
+                     "--max-agent-mb", str(MAX_AGENT_MB), "--max-checkpoint-mb", str(MAX_AGENT_MB),
                      "--lease-seconds", "5").start()
     running.backend = request.param
     yield running
@@ -87,7 +89,7 @@ def test_api_describes_itself(server) -> None:
                  "/api/submissions/results", "/api/submissions/agent", "/api/submissions/{submission_id}"):
         assert path in paths, path
     health = get(server, "/api/health").json()
-    assert health["schema"] == "0001" and health["database"] == server.backend
+    assert health["schema"] == "0002" and health["database"] == server.backend
 
 
 def test_suites_list_download_and_hash(server) -> None:
@@ -131,6 +133,22 @@ def _nan(r: dict) -> None:
     r["units"][0]["returns"][0] = float("nan")
 
 
+def _tamper_normalised(r: dict) -> None:
+    """A normalised return (and its score, to match) that is not its episode's return normalised."""
+    r["units"][7]["normalised_returns"][4] += 0.01
+    r["units"][7]["scores"][4] = r["units"][7]["normalised_returns"][4] / load_suite("narrow-v1").pairs[3].max_expected
+
+
+def _own_luck(r: dict) -> None:
+    """An episode played on an env seed of the run's own choosing, not the protocol's."""
+    r["units"][5]["env_seeds"][3] = 12345
+
+
+def _zero_steps(r: dict) -> None:
+    """An episode of no steps."""
+    r["units"][6]["lengths"][0] = 0
+
+
 @pytest.mark.parametrize("name, change, status, error, detail", [
     ("no-units", lambda r: r.pop("units"), 422, "invalid_results", "missing field(s) units"),
     ("wrong-hash", lambda r: r["suite"].update(sha256="0" * 64), 422, "invalid_results",
@@ -141,6 +159,9 @@ def _nan(r: dict) -> None:
     ("unknown-suite", lambda r: r["suite"].update(name="narrow-v9"), 422, "unknown_suite", "not a public suite"),
     ("no-scores", lambda r: r["scores"].pop("raw"), 422, "invalid_results", "scores.raw.mean.mean is missing"),
     ("short-sha", lambda r: r["agent"].update(sha256="abc"), 422, "invalid_results", "agent.sha256 must be 64 hex"),
+    ("renormalised", _tamper_normalised, 422, "invalid_results", "episode 4: normalised return"),
+    ("own-luck", _own_luck, 422, "invalid_results", "episode 3: env seed 12345 is not the protocol's"),
+    ("zero-steps", _zero_steps, 422, "invalid_results", "episode 0: length 0 is not a step count in 1.."),
 ])
 def test_malformed_results_are_rejected_with_reasons(server, token, evaluated, name, change, status, error,
                                                      detail) -> None:
@@ -175,15 +196,9 @@ def _tamper_episode(r: dict) -> None:
     r["units"][5]["scores"][2] += 0.01
 
 
-def _tamper_normalised(r: dict) -> None:
-    r["units"][7]["normalised_returns"][4] += 0.01
-    r["units"][7]["scores"][4] = r["units"][7]["normalised_returns"][4] / load_suite("narrow-v1").pairs[3].max_expected
-
-
 @pytest.mark.parametrize("change, reason", [
     (_tamper_mean, "stored mean score 0.4"),
     (_tamper_episode, "episode 2: score is not normalised return / the pair's max-expected baseline"),
-    (_tamper_normalised, "episode 4: normalised return"),
 ])
 def test_tampered_results_are_rejected_after_rescoring(server, token, runs, change, reason) -> None:
     label = f"tampered-{change.__name__}"
@@ -209,13 +224,20 @@ def _retouch(r: dict) -> None:
     r["scores"]["mean"]["low"] -= 1e-12  # an aggregate re-scoring does not compare; still the same episodes
 
 
+def _relength(r: dict) -> None:
+    """One episode's length changed to another valid step count: lengths are not scored, still the same run."""
+    length = r["units"][2]["lengths"][1]
+    r["units"][2]["lengths"][1] = length - 1 if length > 1 else length + 1
+
+
 def test_replayed_uploads_are_rejected(server, token, runs) -> None:
     run = runs("replayed")
     data = json_text(run).encode()
     first = post_results(server, token, data)
     assert first.status_code == 202
     for copy_of_it in (data, variant(run, "replayed", _retime), variant(run, "another-name"),
-                       variant(run, "replayed", _claim), variant(run, "replayed", _retouch)):
+                       variant(run, "replayed", _claim), variant(run, "replayed", _retouch),
+                       variant(run, "replayed", _relength)):
         again = post_results(server, token, copy_of_it)
         assert again.status_code == 409 and again.json()["error"] == "replayed", again.text
         assert f"submission {first.json()['id']}" in again.json()["detail"]
@@ -235,6 +257,38 @@ def test_a_rejected_upload_does_not_block_the_genuine_run(server, token, runs) -
     assert genuine.status_code == 202, genuine.text
     assert wait_status(server, genuine.json()["id"])["status"] == "done"
     assert post_results(server, token, json_text(run).encode()).json()["error"] == "replayed"
+
+
+def _widen_intervals(r: dict) -> None:
+    """Every confidence bound and verdict flattered, every point estimate kept (they are all re-scoring compares)."""
+    scores = r["scores"]
+    estimates = [scores["mean"], scores["adaptability"], scores["iqm"], scores["skill"], *scores["curve"],
+                 scores["raw"]["mean"], scores["raw"]["adaptability"], *scores["raw"]["curve"],
+                 *(c["difference"] for c in scores["comparisons"].values())]
+    for estimate in (e for e in estimates if isinstance(e, dict) and e.get("low") is not None):
+        estimate.update(low=estimate["low"] + 0.5, high=estimate["high"] + 0.5)
+    scores["verdicts"] = {verdict: True for verdict in scores["verdicts"]}
+    for comparison in scores["comparisons"].values():
+        if comparison["probability_of_improvement"] is not None:
+            comparison["probability_of_improvement"].update(mean=1.0, low=1.0, high=1.0)
+
+
+def test_the_board_keeps_the_servers_scores_not_the_submitted_intervals(server, token, runs) -> None:
+    run = runs("flattered")  # a run of its own: the replay digest ignores aggregates
+    answer = post_results(server, token, variant(run, "flattered", _widen_intervals))
+    assert answer.status_code == 202, answer.text
+    status = wait_status(server, answer.json()["id"])
+    assert status["status"] in ("done", "rejected"), status
+    if status["status"] == "done":  # accepted: what is stored is the recomputation, never the submitted aggregates
+        recomputed = json_text(run["scores"])  # `evaluate`'s own scores of these episodes
+        assert json_text(status["scores"]["narrow-v1"]) == recomputed
+        entry = next(e for e in table_rows(server, "entries") if e["submission_id"] == answer.json()["id"])
+        assert entry["scores"] == recomputed and json.loads(entry["row"])["mean_low"] == run["scores"]["mean"]["low"]
+        board = get(server, "/api/leaderboards/narrow-v1").json()
+        row = next(r for r in board["rows"] if r["submission_id"] == answer.json()["id"])
+        assert (row["mean_low"], row["mean_high"]) == (run["scores"]["mean"]["low"], run["scores"]["mean"]["high"])
+        assert row["curve_low"] == [p["low"] for p in run["scores"]["curve"]]
+        assert row["adapts"] == run["scores"]["verdicts"]["adapts"]
 
 
 def test_tokens_are_required_and_stored_hashed(server, token, runs) -> None:
@@ -263,6 +317,33 @@ def test_rate_limit_and_daily_quota_per_token(server, runs) -> None:
     over = post_results(server, frugal, json_text(runs("quota-2")).encode())
     assert over.status_code == 429 and over.json()["error"] == "quota_exceeded"
     assert "daily quota of 1 results submissions" in over.json()["detail"]
+
+
+def test_oversized_agent_files_and_checkpoints_are_refused(server, token, tmp_path) -> None:
+    limit = int(MAX_AGENT_MB * 2**20)
+    big = tmp_path / "big_agent.py"
+    big.write_text("class Agent:\n    pass\n" + "#" * limit)
+    answer = post_agent(server, token, big)
+    assert answer.status_code == 413 and answer.json()["error"] == "too_large", answer.text
+    assert f"the agent file is larger than the limit of {limit:,} bytes" in answer.json()["detail"]
+    archive = os.urandom(limit + 1)  # refused by size before anything looks inside it
+    answer = post_agent(server, token, AGENTS / "class_agent.py", name="with-a-big-checkpoint",
+                        checkpoint=("weights.tar.gz", archive))
+    assert answer.status_code == 413 and answer.json()["error"] == "too_large", answer.text
+    assert f"the checkpoint archive is larger than the limit of {limit:,} bytes" in answer.json()["detail"]
+    assert not list((server.data_dir / "uploads" / "staging").glob("*"))  # the spooled part is not kept
+    assert all(s["agent_name"] not in ("big_agent", "with-a-big-checkpoint") for s in table_rows(server, "submissions"))
+
+
+def test_daily_agent_quota_per_token(server) -> None:
+    frugal = server.token("frugal-agents", daily_agents=1)
+    first = post_agent(server, frugal, AGENTS / "faulty_agent.py", name="quota-agent", agent_args={"fault": "raise"})
+    assert first.status_code == 202, first.text  # it fails fast on the worker; it counts all the same
+    over = post_agent(server, frugal, AGENTS / "faulty_agent.py", name="quota-agent-2", agent_args={"fault": "exit"})
+    assert over.status_code == 429 and over.json()["error"] == "quota_exceeded", over.text
+    assert "daily quota of 1 agent submissions" in over.json()["detail"]
+    assert post_results(server, frugal, b"{}").status_code == 422  # results uploads keep their own quota
+    wait_status(server, first.json()["id"], timeout=300)
 
 
 def test_cli_submit_and_status(server, token, runs, tmp_path) -> None:

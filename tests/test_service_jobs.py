@@ -4,10 +4,12 @@ mid-job, the server killed mid-upload or before a job ran): nothing lost, nothin
 
 from __future__ import annotations
 
+import html
 import io
 import json
 import multiprocessing
 import os
+import re
 import shutil
 import signal
 import socket
@@ -16,11 +18,13 @@ import tarfile
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 from service_harness import (AGENTS, BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_agent,
                              post_results, postgres_cluster, require_sandbox, table_rows, wait_status)
 
 from mewa_bench.files import json_text
+from mewa_bench.service.faults import CRASH_VARIABLE
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -103,7 +107,17 @@ def test_agent_scores_on_public_and_hidden_boards_equal_evaluate(backend, tmp_pa
         assert status["status"] == "done", status
         assert [(j["board"], j["hidden"]) for j in status["jobs"]] == [("narrow-v1", False), (HIDDEN, True)]
         assert json_text(status["scores"]["narrow-v1"]) == json_text(public["scores"])  # byte for byte
-        assert json_text(status["scores"][HIDDEN]) == json_text(hidden["scores"])
+        withheld = ("units", "control_variates", "comparisons")  # publicly: nothing that counts the hidden pairs
+        assert json_text(status["scores"][HIDDEN]) == json_text({k: v for k, v in hidden["scores"].items()
+                                                                  if k not in withheld})
+        shown = status["jobs"][1]
+        assert (shown["units_done"], shown["units_total"], shown["resumed_units"], shown["progress"]) == \
+            (None, None, None, 1.0)
+        page = get(server, f"/submissions/{answer.json()['id']}")
+        assert page.status_code == 200 and f'<tr data-board="{HIDDEN}" data-mean=' in page.text
+        full = admin_view(server, answer.json()["id"])  # the admin sees every byte
+        assert json_text(full["scores"][HIDDEN]) == json_text(hidden["scores"])
+        assert full["jobs"][1]["units_total"] == full["jobs"][1]["units_done"] == hidden["scores"]["units"]
         board = get(server, f"/api/leaderboards/{HIDDEN}").json()
         assert board["hidden"] and board["suite"] is None and board["public_twin"] == "narrow-v1"
         assert [r["name"] for r in board["rows"] if r["kind"] == "agent"] == ["random"]
@@ -114,6 +128,25 @@ def test_agent_scores_on_public_and_hidden_boards_equal_evaluate(backend, tmp_pa
         assert again.status_code == 409 and again.json()["error"] == "replayed"
     finally:
         server.stop()
+
+
+def every_job_final(server: Server, submission_id: int, timeout: float = 300.0) -> dict:
+    """A submission's status once each of its jobs is final (it is rejected as soon as one of them is)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        status = get(server, f"/api/submissions/{submission_id}").json()
+        if all(j["state"] in ("done", "rejected", "failed") for j in status["jobs"]):
+            return status
+        assert time.monotonic() < deadline, f"submission {submission_id}'s jobs are not final: {status['jobs']}"
+        time.sleep(0.2)
+
+
+def admin_view(server: Server, submission_id: int) -> dict:
+    """`mewa-bench serve show ID`: the whole record, as the server's admin sees it."""
+    db = ["--db", server.db] if server.db else []
+    shown = subprocess.run([*CLI, "serve", "show", str(submission_id), "--data-dir", str(server.data_dir), *db],
+                           check=True, capture_output=True, text=True, timeout=120)
+    return json.loads(shown.stdout)
 
 
 def _archive(members: dict[str, bytes], links: tuple[str, ...] = ()) -> bytes:
@@ -175,7 +208,8 @@ def test_agent_uploads_are_checked_and_hostile_agents_fail_with_reasons(tmp_path
                             agent_args={"path": str(hidden_file), "mode": "read"})
         network = post_agent(server, token, AGENTS / "network_agent.py", name="network", agent_args={"how": "python"})
         raw = post_agent(server, token, AGENTS / "network_agent.py", name="raw-network", agent_args={"how": "raw"})
-        for answer in (reader, network, raw):
+        leaky = post_agent(server, token, AGENTS / "leaky_agent.py", name="leaky")
+        for answer in (reader, network, raw, leaky):
             assert answer.status_code == 202, answer.text
         assert wait_status(server, good.json()["id"], timeout=300)["status"] == "done"
         read = wait_status(server, reader.json()["id"], timeout=300)
@@ -184,6 +218,20 @@ def test_agent_uploads_are_checked_and_hostile_agents_fail_with_reasons(tmp_path
         for answer in (network, raw):
             status = wait_status(server, answer.json()["id"], timeout=300)
             assert status["status"] == "rejected" and "network" in status["reason"].lower(), status
+        hidden_read = every_job_final(server, reader.json()["id"])["jobs"][1]
+        assert hidden_read["board"] == HIDDEN and hidden_read["error"] == \
+            "sandbox rule broken (filesystem) on the hidden suite (details of runs on a hidden suite are kept for " \
+            "the server's admin)", hidden_read
+        leaked = every_job_final(server, leaky.json()["id"])
+        assert leaked["status"] == "rejected" and "LEAK" in leaked["reason"]  # on the public suite: the whole text
+        text = json.dumps(leaked["jobs"][1])
+        assert "LEAK" not in text and "pair" not in text and "the agent failed (exception) on the hidden suite" in text
+        page = get(server, f"/submissions/{leaky.json()['id']}").text
+        hidden_row = page.split(f'<tr data-board="{HIDDEN}"')[1].split("</tr>")[0]
+        assert "LEAK" not in hidden_row and "on the hidden suite" in hidden_row
+        full = admin_view(server, leaky.json()["id"])["jobs"][1]
+        assert full["error"].startswith("the agent failed (exception): agent ") and ", pair " in full["error"]
+        assert "LEAK [[" in full["error"]
         boards = {b["board"]: b["entries"] for b in get(server, "/api/leaderboards").json()}
         assert boards["narrow-v1"] == 1 and boards[HIDDEN] == 1  # only the good agent
     finally:
@@ -201,24 +249,30 @@ def _units_on_disk(path: Path) -> int:
         return 0
 
 
+def _paced_job_midway(server: Server, tmp_path: Path, user: str) -> tuple[int, Path]:
+    """Submit the paced agent as `user` and wait until its job is running with some of its 32 units on disk;
+    the submission id and the job's results file."""
+    paced = tmp_path / "paced.py"
+    paced.write_text(PACED_AGENT)
+    answer = post_agent(server, server.token(user), paced, "narrow-v1", agent_args=PACED_ARGS)
+    assert answer.status_code == 202, answer.text
+    submission = answer.json()["id"]
+    deadline = time.monotonic() + 120
+    while (job := _job(server, submission))["state"] != "running" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    results = server.data_dir / "jobs" / str(job["id"]) / "results.json"
+    while not 0 < _units_on_disk(results) < 32 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return submission, results
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_worker_killed_mid_job_resumes_from_its_last_finished_unit(backend, tmp_path_factory, tmp_path, postgres,
                                                                       references) -> None:
     require_sandbox()
     server = new_server(tmp_path_factory, backend, postgres, None, "--workers", "1", "--lease-seconds", "2")
-    paced = tmp_path / "paced.py"
-    paced.write_text(PACED_AGENT)
     try:
-        token = server.token("dave")
-        answer = post_agent(server, token, paced, "narrow-v1", agent_args=PACED_ARGS)
-        assert answer.status_code == 202, answer.text
-        submission = answer.json()["id"]
-        deadline = time.monotonic() + 120
-        while (job := _job(server, submission))["state"] != "running" and time.monotonic() < deadline:
-            time.sleep(0.05)
-        results = server.data_dir / "jobs" / str(job["id"]) / "results.json"
-        while not 0 < _units_on_disk(results) < 32 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        submission, results = _paced_job_midway(server, tmp_path, "dave")
         worker = int(_job(server, submission)["lease_owner"].split(":")[1])
         os.kill(worker, signal.SIGKILL)  # mid-job: some units are in the results file, the rest are not
         kept = _units_on_disk(results)
@@ -228,10 +282,36 @@ def test_a_worker_killed_mid_job_resumes_from_its_last_finished_unit(backend, tm
         assert status["status"] == "done", status
         job = _job(server, submission)
         assert job["attempts"] == 2 and job["resumed_units"] == kept  # the second claim started after those units
+        shown = status["jobs"][0]["note"]  # the reaper says what it did, on the status and on the page
+        assert re.fullmatch(r"\S+ \S+ UTC: the worker's lease expired at \S+ \S+ UTC \(it crashed, was killed or "
+                            r"stalled\); re-queued for attempt 2 of 3", shown), shown
+        assert shown in html.unescape(get(server, f"/submissions/{submission}").text)
         finished = json.loads(results.read_text())
         assert finished["units"] == reference["units"]  # the same as an uninterrupted run, each unit once
         assert json_text(status["scores"]["narrow-v1"]) == json_text(reference["scores"])
         assert [e["job_id"] for e in table_rows(server, "entries")] == [job["id"]]
+    finally:
+        server.stop()
+
+
+def test_a_job_stopped_cleanly_goes_back_to_the_queue_and_resumes_after_restart(tmp_path_factory, tmp_path, postgres,
+                                                                               references) -> None:
+    require_sandbox()
+    server = new_server(tmp_path_factory, "sqlite", postgres, None, "--workers", "1")
+    try:
+        submission, results = _paced_job_midway(server, tmp_path, "grace")
+        server.stop()  # SIGTERM: the worker puts its job back (`jobs.release`) and keeps its finished units
+        kept = _units_on_disk(results)
+        job = _job(server, submission)
+        assert 0 < kept < 32 and job["state"] == "queued" and job["attempts"] == 0, (kept, job)
+        assert job["lease_owner"] is None and job["note"] is None  # a clean stop is not a lost lease
+        server.start()
+        status = wait_status(server, submission, timeout=300)
+        assert status["status"] == "done", status
+        job = _job(server, submission)
+        assert job["attempts"] == 1 and job["resumed_units"] == kept  # one counted attempt, resumed after the units
+        assert json.loads(results.read_text())["units"] == references["paced"]["units"]
+        assert json_text(status["scores"]["narrow-v1"]) == json_text(references["paced"]["scores"])
     finally:
         server.stop()
 
@@ -276,6 +356,122 @@ def test_server_killed_mid_upload_or_before_scoring_loses_nothing(backend, tmp_p
         assert len(table_rows(server, "entries")) == 1 and get(server, "/api/leaderboards").json()[0]["entries"] == 1
     finally:
         server.stop()
+
+
+def _crashed_upload(send) -> None:
+    """An upload the server dies in (at its crash point): no answer comes."""
+    with pytest.raises(httpx.HTTPError):
+        send()
+
+
+def _uploaded_files(server: Server) -> list[Path]:
+    """The results files and agent folders in the data dir."""
+    uploads = server.data_dir / "uploads"
+    return sorted([*(uploads / "results").glob("*"), *(uploads / "agents").glob("*")])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_server_killed_between_storing_an_upload_and_committing_it_leaves_nothing(backend, tmp_path_factory,
+                                                                                  postgres, references) -> None:
+    server = new_server(tmp_path_factory, backend, postgres, None, "--workers", "1")
+    server.stop()
+    try:
+        token = server.token("frank")
+        data = json_text(references["public"]).encode()
+        server.env = {CRASH_VARIABLE: "results-stored"}
+        server.start()
+        _crashed_upload(lambda: post_results(server, token, data))
+        stored = _uploaded_files(server)
+        assert len(stored) == 1 and stored[0].read_bytes() == data  # the file was whole on disk, its row never came
+        assert table_rows(server, "submissions") == [] and table_rows(server, "jobs") == []
+        server.kill()  # the rest of its process group (its worker)
+
+        server.env = {CRASH_VARIABLE: "agent-stored"}
+        server.start()  # alone on its data dir: the minutes-young orphan goes at once
+        assert _uploaded_files(server) == []
+        _crashed_upload(lambda: post_agent(server, token, AGENTS / "faulty_agent.py", name="crashed",
+                                           agent_args={"fault": "raise"}))
+        assert [p.parent.name for p in _uploaded_files(server)] == ["agents"]
+        assert table_rows(server, "submissions") == []
+        server.kill()
+
+        server.env = {}
+        server.start()
+        assert _uploaded_files(server) == [] and table_rows(server, "submissions") == []
+        assert not list((server.data_dir / "uploads" / "staging").glob("*"))
+        answer = post_results(server, token, data)  # not a replay: nothing of the crashed upload remains
+        assert answer.status_code == 202, answer.text
+        status = wait_status(server, answer.json()["id"], timeout=120)
+        assert status["status"] == "done" and json_text(status["scores"]["narrow-v1"]) == \
+            json_text(references["public"]["scores"])
+        assert len(table_rows(server, "submissions")) == 1 and len(_uploaded_files(server)) == 1
+    finally:
+        server.stop()
+
+
+def _orphans(settings, now: float) -> dict[str, Path]:
+    """Upload files of each kind, old (two minutes) or young (a second), with and without a row."""
+    uploads = settings.uploads_dir
+    files = {"kept-results": uploads / "results" / "a.json", "old-results": uploads / "results" / "b.json",
+             "young-results": uploads / "results" / "c.json", "old-tmp": uploads / "results" / ".d.json.x.tmp",
+             "kept-agent": uploads / "agents" / "u1" / "kept" / "agent.py",
+             "old-agent": uploads / "agents" / "u2" / "lost" / "agent.py",
+             "young-agent": uploads / "agents" / "u3" / "lost" / "agent.py",
+             "old-staging": uploads / "staging" / "e.checkpoint"}
+    for name, path in files.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(name)
+        when = now - (1.0 if name.startswith("young") else 120.0)
+        for touched in (path, path.parent, path.parent.parent):
+            os.utime(touched, (when, when))
+    return files
+
+
+def _left(settings, files: dict[str, Path]) -> set[str]:
+    """Which of `files` are still there."""
+    return {name for name, path in files.items() if path.exists()}
+
+
+def test_sweep_orphans_removes_rowless_uploads_older_than_its_age(tmp_path) -> None:
+    from mewa_bench.service.settings import Settings
+    from mewa_bench.service.uploads import ORPHAN_AGE, sweep_orphans
+
+    settings = Settings(tmp_path / "data")
+    now = time.time()
+    files = _orphans(settings, now)
+    referenced = {"uploads/results/a.json", "uploads/agents/u1/kept/agent.py"}
+    removed = sweep_orphans(settings, referenced, now=now)
+    assert ORPHAN_AGE > 1.0
+    assert _left(settings, files) == {"kept-results", "young-results", "kept-agent", "young-agent"}
+    assert sorted(p.as_posix() for p in removed) == ["uploads/agents/u2", "uploads/results/.d.json.x.tmp",
+                                                     "uploads/results/b.json", "uploads/staging/e.checkpoint"]
+    sweep_orphans(settings, referenced, now=now, min_age=0.0)  # no upload in flight: any age
+    assert _left(settings, files) == {"kept-results", "kept-agent"}
+
+
+def test_at_start_a_lone_api_process_sweeps_every_orphan_and_one_beside_others_only_old_ones(tmp_path) -> None:
+    import fcntl
+
+    from mewa_bench.service.server import prepare
+    from mewa_bench.service.settings import Settings
+    from mewa_bench.service.uploads import API_LOCK
+
+    settings = Settings(tmp_path / "data")
+    settings.data_dir.mkdir(parents=True)
+    files = _orphans(settings, time.time())
+    with open(settings.data_dir / API_LOCK, "a") as running:  # another API process serving this data dir
+        fcntl.flock(running, fcntl.LOCK_SH)
+        prepare(settings).close()
+        assert _left(settings, files) == {"young-results", "young-agent"}  # maybe the other's uploads in flight
+        lock = prepare(settings)
+        try:  # a running API process holds the lock shared: a third one starting is not alone either
+            with open(settings.data_dir / API_LOCK, "a") as probe:
+                with pytest.raises(BlockingIOError):
+                    fcntl.flock(probe, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        finally:
+            lock.close()
+    prepare(settings).close()  # alone: nothing can be in flight
+    assert _left(settings, files) == set()
 
 
 # -- the queue itself ------------------------------------------------------------------------------
@@ -330,6 +526,13 @@ def test_queue_claims_each_job_once_and_expires_leases(backend, tmp_path, postgr
     assert first is not None and first.attempts == 1 and claim(sessions, "b", 10.0, now=now + 9) is None
     second = claim(sessions, "b", lease_seconds=10.0, now=now + 11)  # the lease expired: another worker takes it
     assert second is not None and second.id == first.id and second.attempts == 2
+    with sessions() as s:
+        from mewa_bench.service.jobs import utc_text
+        from mewa_bench.service.models import Job
+
+        note = s.get(Job, first.id).note
+        assert note == (f"{utc_text(now + 11)}: the worker's lease expired at {utc_text(now + 10)} (it crashed, was "
+                        f"killed or stalled); re-queued for attempt 2 of 2")
     assert not renew(sessions, first.id, "a", 10.0)  # the first owner can no longer touch it
     with transaction(sessions) as s:
         assert not close(s, first.id, "a", "done")

@@ -149,17 +149,57 @@ def test_the_kernel_refuses_a_socket_made_past_python(sandbox, tmp_path):
     assert caught.value.kind == "exception"
 
 
+KEPT_FROM_IT = ("which the sandbox keeps from it (agents may read only their own directory, their checkpoint, the "
+                "Python install and their scratch directory)")
+
+
 def test_an_agent_that_reads_the_hidden_suite_fails_with_the_reason(sandbox, tmp_path, hidden_dir):
     _, suites = hidden_dir
     hidden = suites["narrow-v1-hidden"]
     with pytest.raises(SandboxViolation) as caught:
         run(tmp_path, "file_agent.py", suite=hidden, agent_args={"path": str(hidden)})
-    message = str(caught.value)
     assert caught.value.rule == "filesystem"
-    assert f"{FIRST_STEP}: agent file_agent.py: act() raised FileNotFoundError: [Errno 2] No such file or " \
-           f"directory: '{hidden}'" in message
+    assert f"{FIRST_STEP}: agent file_agent.py: the agent tried to read {hidden}, {KEPT_FROM_IT}" in str(caught.value)
+
+
+def test_a_file_outside_the_sandbox_that_is_not_private_is_explained_by_the_missing_file(sandbox, tmp_path):
+    elsewhere = tmp_path / "elsewhere.txt"
+    elsewhere.write_text("not the agent's")
+    with pytest.raises(SandboxViolation) as caught:
+        run(tmp_path, "file_agent.py", agent_args={"path": str(elsewhere)})
+    assert f"act() raised FileNotFoundError: [Errno 2] No such file or directory: '{elsewhere}'" in str(caught.value)
     assert f"the sandbox shows the agent only its own directory, its checkpoint, the Python install and its " \
-           f"scratch directory; {hidden} is not among them" in message
+           f"scratch directory; {elsewhere} is not among them" in str(caught.value)
+
+
+@pytest.mark.parametrize("target, how", [
+    ("hidden suite", "read"),  # the hidden suite being played
+    ("seed", "read"),  # the data dir's private seed (the caller's private places: the service passes its data dir)
+    ("data dir", "list"),
+    ("results", "read"),  # its own results file, by a relative path from its scratch directory
+    ("hidden suite", "link"),  # through a symlink made in its scratch directory
+])
+def test_an_agent_that_catches_its_failed_read_of_a_private_file_fails_all_the_same(sandbox, tmp_path, hidden_dir,
+                                                                                   target, how):
+    data_dir, suites = hidden_dir
+    hidden = suites["narrow-v1-hidden"]
+    path = {"hidden suite": str(hidden), "seed": str(data_dir / "hidden" / SEED_FILE), "data dir": str(data_dir),
+            "results": "../results.json"}[target]
+    with pytest.raises(SandboxViolation) as caught:  # without the hook the run would end well: the agent plays on
+        run(tmp_path, "caught_read_agent.py", suite=hidden, agent_args={"path": path, "how": how},
+            private=(data_dir,))
+    assert caught.value.rule == "filesystem" and caught.value.kind == "sandbox"
+    shown = {"link": f"innocent.json (that is {hidden})", "read": path, "list": path}[how]
+    if target == "results":
+        shown = f"{path} (that is {tmp_path / 'results.json'})"
+    assert f"{FIRST_STEP}: agent caught_read_agent.py: the agent tried to read {shown}, {KEPT_FROM_IT}" \
+        in str(caught.value)
+
+
+def test_an_agent_that_catches_a_failed_read_of_a_public_place_plays_on(sandbox, tmp_path, hidden_dir):
+    data_dir, _ = hidden_dir
+    results = run(tmp_path, "caught_read_agent.py", agent_args={"path": "/sys/fs/cgroup/cpu.max"}, private=(data_dir,))
+    assert len(results["units"]) == 1  # libraries probe such places: not a violation
 
 
 def test_a_suite_or_results_file_the_agent_could_see_is_refused(sandbox, tmp_path, hidden_dir):

@@ -6,6 +6,7 @@ when one of them runs.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import typer
@@ -164,6 +165,28 @@ def token_list(data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir",
     console.print(table)
 
 
+@serve_app.command("show")
+def serve_show(submission_id: int = typer.Argument(..., metavar="ID", help="The submission's id."),
+               data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir", help=DATA_DIR_HELP),
+               db: str = typer.Option(None, "--db", help=DB_HELP)) -> None:
+    """The admin's view of a submission, as JSON: its hidden-suite jobs whole (errors, unit counts, every score)."""
+    from mewa_bench.service.models import Submission
+    from mewa_bench.service.routes.submissions import describe
+
+    def full(session):
+        """The whole record, or None."""
+        submission = session.get(Submission, submission_id)
+        return None if submission is None else describe(session, submission, full=True)
+
+    try:
+        record = _with_session(data_dir, db, full)
+    except (ValueError, OSError) as e:
+        _fail(e)
+    if record is None:
+        _fail(LookupError(f"submission {submission_id} does not exist in this service's database"))
+    print(json.dumps(record, indent=1))
+
+
 def submit(file: Path = typer.Argument(..., metavar="FILE", exists=True, dir_okay=False,
                                        help="A results file (.json) of `mewa-bench evaluate`, or an agent file (.py)."),
            server: str = typer.Option(..., envvar="MEWA_SERVER", help=SERVER_HELP),
@@ -222,7 +245,12 @@ def _print_status(current: dict) -> None:
     for job in current["jobs"]:
         scores = current["scores"].get(job["board"])
         units = f"{job['units_done']}/{job['units_total']}" if job["units_total"] else ""
+        if job["units_total"] is None and job.get("progress") is not None:  # a hidden suite: its size is not shown
+            units = f"{100 * job['progress']:.0f}%"
         table.add_row(job["board"] + (" (hidden)" if job["hidden"] else ""), job["state"], units, str(job["attempts"]),
                       "" if scores is None else f"{scores['mean']['mean']:.4f}",
                       "" if scores is None else f"{scores['adaptability']['mean']:.4f}")
     console.print(table)
+    for job in current["jobs"]:
+        if job.get("note"):
+            console.print(f"{job['board']}: {escape(job['note'])}")

@@ -3,7 +3,9 @@
 Rows are the leaderboard's own (`leaderboard.board.Row`, stored when the entry was scored), ranked
 the way `mewa-bench leaderboard` ranks them (privileged agents unranked, equal means share a rank),
 with the suite's exact reference lines and each agent's adaptation curve s_1..s_10 with its CIs.
-A hidden board shows scores only: never the hidden suite, its pairs or the runs' units.
+A hidden board shows scores only: never the hidden suite, its pairs, its size or the runs' units.
+Its reference lines (the fixed policies' and the optimum's means over the whole suite) are shown:
+one number each, which the agents' rows are read against, and from which no pair can be learned.
 """
 
 from __future__ import annotations

@@ -54,7 +54,8 @@ def run_agent_job(settings: Settings, job: AgentJob, progress: Callable[[int, in
     suite = suite_of(settings, job.board, job.hidden)
     try:
         return sandboxed_evaluate(job.agent_file, suite, job.out, scratch=job.scratch, seeds=job.seeds,
-                                  progress=progress, agent_args=job.agent_args, name=job.name)
+                                  progress=progress, agent_args=job.agent_args, name=job.name,
+                                  private=(settings.data_dir,))
     except SandboxViolation as e:
         raise AgentRejected(f"sandbox rule broken ({e.rule}): {_without_paths(str(e), settings)}") from None
     except EvaluationError as e:

@@ -3,9 +3,11 @@
 A worker claims a job with one conditional UPDATE whose candidate row comes from a sub-select:
 `... FOR UPDATE SKIP LOCKED` on PostgreSQL (concurrent workers skip each other's rows), a plain
 sub-select on SQLite (whose write lock makes the statement atomic). A claim sets a lease that the
-worker renews; a job whose lease expired (its worker crashed, was killed, or hung) is claimable
-again, up to `max_attempts` claims, after which it fails with the reason. Every state change after
-the claim is conditional on the lease owner, so a worker that lost its lease can change nothing.
+worker renews; a job whose lease expired (its worker crashed, was killed, or hung) is re-queued by
+the reaper (`requeue_expired`, run before every claim), which says so in the job's `note` ("the
+worker's lease expired at ...; re-queued for attempt N of M"), up to `max_attempts` claims, after
+which it fails with the reason (`give_up_expired`). Every state change after the claim is
+conditional on the lease owner, so a worker that lost its lease can change nothing.
 """
 
 from __future__ import annotations
@@ -45,11 +47,29 @@ def add_job(session: Session, submission_id: int, kind: str, board: str, hidden:
     return job
 
 
-def _claimable(table, now: float):
-    """Queued, or running with an expired lease."""
-    from sqlalchemy import and_, or_
+def utc_text(seconds: float) -> str:
+    """Unix seconds as 'YYYY-MM-DD HH:MM:SS UTC'."""
+    return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(seconds))
 
-    return or_(table.state == QUEUED, and_(table.state == RUNNING, table.lease_expires < now))
+
+def requeue_expired(sessions: sessionmaker[Session], now: float | None = None) -> int:
+    """Put the running jobs whose lease expired (attempts left) back in the queue, each with a note saying so;
+    returns how many. Each update is conditional on the very lease it found expired: two reapers re-queue a job once."""
+    from sqlalchemy import select, update
+
+    now = time.time() if now is None else now
+    with sessions() as session, session.begin():
+        stale = session.execute(select(Job.id, Job.lease_expires, Job.attempts, Job.max_attempts, Job.note).where(
+            Job.state == RUNNING, Job.lease_expires < now, Job.attempts < Job.max_attempts)).all()
+        requeued = 0
+        for job_id, expired, attempts, max_attempts, note in stale:
+            line = (f"{utc_text(now)}: the worker's lease expired at {utc_text(expired)} (it crashed, was killed or "
+                    f"stalled); re-queued for attempt {attempts + 1} of {max_attempts}")
+            requeued += session.execute(
+                update(Job).where(Job.id == job_id, Job.state == RUNNING, Job.lease_expires == expired)
+                .values(state=QUEUED, lease_owner=None, lease_expires=None,
+                        note=line if not note else f"{note}\n{line}")).rowcount
+        return requeued
 
 
 def give_up_expired(sessions: sessionmaker[Session], now: float | None = None) -> int:
@@ -81,19 +101,20 @@ def free_digest(session: Session, submission_id: int) -> None:
 
 
 def claim(sessions: sessionmaker[Session], owner: str, lease_seconds: float, now: float | None = None) -> Claimed | None:
-    """Claim the oldest claimable job, or None (first come, first served: a flood of results uploads
-    cannot starve agent evaluations)."""
+    """Claim the oldest queued job (after re-queuing the expired ones), or None (first come, first served: a flood
+    of results uploads cannot starve agent evaluations)."""
     from sqlalchemy import select, update
     from sqlalchemy.orm import aliased
 
     now = time.time() if now is None else now
+    requeue_expired(sessions, now)
     candidates = aliased(Job)
-    candidate = (select(candidates.id).where(_claimable(candidates, now), candidates.attempts < candidates.max_attempts)
+    candidate = (select(candidates.id).where(candidates.state == QUEUED, candidates.attempts < candidates.max_attempts)
                  .order_by(candidates.id).limit(1)
                  .with_for_update(skip_locked=True).scalar_subquery())
     with sessions() as session, session.begin():
         job_id = session.execute(
-            update(Job).where(Job.id == candidate, _claimable(Job, now))
+            update(Job).where(Job.id == candidate, Job.state == QUEUED)
             .values(state=RUNNING, lease_owner=owner, lease_expires=now + lease_seconds, attempts=Job.attempts + 1,
                     started=now, error=None)
             .returning(Job.id)).scalar()

@@ -72,6 +72,7 @@ class Job(Base):
     units_total: Mapped[int] = mapped_column(Integer, default=0)
     resumed_units: Mapped[int | None] = mapped_column(Integer, nullable=True)  # units already done when the last claim started
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    note: Mapped[str | None] = mapped_column(Text, nullable=True)  # what the service did to it (re-queued: why, when)
     created: Mapped[float] = mapped_column(Float)
     started: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished: Mapped[float | None] = mapped_column(Float, nullable=True)

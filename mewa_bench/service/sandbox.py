@@ -19,9 +19,14 @@ which talks to it over two pipes) is started inside the sandbox, through a `Laun
   namespaces (unshare, setns, clone with CLONE_NEW*), no io_uring, bpf, perf_event_open,
   userfaultfd, ptrace or keyrings.
 - an audit hook that names what the agent tried: opening a network socket or resolving a name,
-  writing outside the scratch directory and /tmp. The call fails with kind "sandbox"
-  (`isolation.report_violation`) even if the agent catches the PermissionError it gets. The hook
-  only explains; the kernel enforces the rules (an agent can reach past Python with ctypes).
+  writing outside the scratch directory and /tmp, and opening or listing anything in the private
+  places (`private`: the hidden suite file, the results file, and whatever the caller adds; the
+  service adds its whole data dir) other than what the sandbox shows it (its own directory and
+  checkpoint, which may lie in the data dir, the Python install, its scratch directory), after
+  resolving symlinks. The call fails with kind "sandbox" (`isolation.report_violation`) even if the
+  agent catches the PermissionError it gets. The hook only explains; the kernel enforces the rules
+  (the private places are not in the sandbox at all; an agent can reach past Python with ctypes).
+  Reads elsewhere outside the sandbox's mounts are not reported: libraries probe /sys and /etc.
 - time: the protocol's per-call limit, the CPU-time rlimit, and a wall-clock limit on the whole
   evaluation, checked as units finish.
 
@@ -97,12 +102,14 @@ def sandboxed_evaluate(agent_file: Path, suite: str | Path, out: Path, *, scratc
                        limits: SandboxLimits | None = None,
                        progress: Callable[[int, int], None] = lambda done, total: None,
                        agent_args: dict[str, str] | None = None, pairs: tuple[int, ...] | None = None,
-                       name: str | None = None, lanes: int | None = None) -> dict[str, Any]:
+                       name: str | None = None, lanes: int | None = None,
+                       private: tuple[Path, ...] = ()) -> dict[str, Any]:
     """Evaluate `agent_file` on `suite` with the agent in the sandbox; continue `out` if it holds part of this run.
 
     `scratch` is the agent's only writable directory (created; HOME and TMPDIR point there);
     `checkpoint_dir` (read-only) is given to the agent as its checkpoint argument; `agent_args`,
-    `pairs`, `name` and `lanes` are evaluate's (lanes change nothing in the results). Returns the
+    `pairs`, `name` and `lanes` are evaluate's (lanes change nothing in the results); `private`:
+    places whose reading (beside the suite file and `out`) fails the run as a sandbox violation. Returns the
     results (also in `out`). Raises SandboxViolation when the agent breaks a sandbox rule,
     `protocol.runner.EvaluationError` when it fails otherwise, RuntimeError if there is no sandbox here.
     """
@@ -122,13 +129,15 @@ def sandboxed_evaluate(agent_file: Path, suite: str | Path, out: Path, *, scratc
     readable = [agent_file.parent] + ([checkpoint] if checkpoint is not None else [])
     visible = [*_python_dirs(), *readable, scratch]
     suite_file = Path(resolve(suite)).resolve()
-    if suite_file not in {shipped_path(n).resolve() for n in ALL_SUITES}:
+    shipped = suite_file in {shipped_path(n).resolve() for n in ALL_SUITES}
+    if not shipped:
         _check_hidden(suite_file, "the suite file", visible)
     _check_hidden(out, "the results file", visible)
     if os.geteuid() == 0 and not agent_file.stat().st_mode & 0o004:
         raise PermissionError(f"{agent_file} is not readable by the sandbox user (uid {SANDBOX_UID}): make it "
                               f"world-readable (chmod o+r), as everything the agent loads must be")
-    launcher = sandbox_launcher(readable, scratch, limits)
+    kept_from_agent = [out, *(Path(p).absolute() for p in private)] + ([] if shipped else [suite_file])
+    launcher = sandbox_launcher(readable, scratch, limits, kept_from_agent)
     config = EvalConfig(agent_path=agent_file, suite=str(suite), seeds=seeds, out=out, name=name,
                         agent_args=dict(agent_args or {}), checkpoint=None if checkpoint is None else str(checkpoint),
                         time_limit=limits.call_seconds, memory_limit=limits.memory_bytes, resume=True, pairs=pairs,
@@ -149,12 +158,15 @@ def sandboxed_evaluate(agent_file: Path, suite: str | Path, out: Path, *, scratc
     return results
 
 
-def sandbox_launcher(readable: list[Path], scratch: Path, limits: SandboxLimits) -> Launcher:
-    """The Launcher that starts the agent process in bwrap, seeing `readable` (read-only) and `scratch`."""
+def sandbox_launcher(readable: list[Path], scratch: Path, limits: SandboxLimits,
+                     private: list[Path] | None = None) -> Launcher:
+    """The Launcher that starts the agent process in bwrap, seeing `readable` (read-only) and `scratch`; reading
+    `private` (outside those) is reported as a violation."""
     prefix, layout = _bwrap_command([*_python_dirs(), *readable], scratch, limits)
     settings = {"cpu_seconds": limits.cpu_seconds, "processes": limits.processes, "file_bytes": limits.file_bytes,
                 "open_files": limits.open_files, "scratch": str(scratch), "writable": ["/tmp", "/dev", "/proc/self"],
-                "read_only": [str(p) for p in layout]}
+                "read_only": [str(p) for p in layout], "private": [os.path.realpath(p) for p in private or []],
+                "visible": [os.path.realpath(p) for p in [*_python_dirs(), *readable, scratch]]}
     package_parent = Path(__file__).resolve().parents[2]
     environment = {"PATH": "/usr/local/bin:/usr/bin:/bin", "HOME": str(scratch), "TMPDIR": str(scratch),
                    "PYTHONPATH": str(package_parent), "PYTHONDONTWRITEBYTECODE": "1", "PYTHONNOUSERSITE": "1",
@@ -270,12 +282,14 @@ def confined_child_main() -> None:
                          (resource.RLIMIT_NOFILE, (settings["open_files"],) * 2)):
         resource.setrlimit(limit, value)
     _install_seccomp()
-    sys.addaudithook(_AuditHook(settings["scratch"], settings["writable"], settings["read_only"]))
+    sys.addaudithook(_AuditHook(settings["scratch"], settings["writable"], settings["read_only"], settings["private"],
+                                settings["visible"]))
     _child_main()
 
 
 class _AuditHook:
-    """Names the network use and the writes outside the scratch directory that the kernel will refuse."""
+    """Names the network use, the writes outside the scratch directory and the reads of private places that the
+    kernel will refuse."""
 
     _NAME_LOOKUPS = frozenset({"socket.getaddrinfo", "socket.gethostbyname", "socket.gethostbyname_ex",
                                "socket.gethostbyaddr", "socket.getnameinfo"})
@@ -284,11 +298,17 @@ class _AuditHook:
         "os.truncate": (0,), "os.chmod": (0,), "os.chown": (0,), "os.utime": (0,)}
     _WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_APPEND
 
-    def __init__(self, scratch: str, writable: list[str], read_only: list[str]) -> None:
+    _PATH_READS = frozenset({"os.listdir", "os.scandir"})
+
+    def __init__(self, scratch: str, writable: list[str], read_only: list[str], private: list[str] = (),
+                 visible: list[str] = ()) -> None:
         self._scratch, self._in_scratch = scratch, os.path.join(scratch, "")
         self._writable = tuple(os.path.join(w, "") for w in writable)  # the tmpfs mounts ...
         self._read_only = tuple(os.path.join(r, "") for r in read_only)  # ... but not the mounts' ways in them
-        self._watched = frozenset({"socket.__new__", "open", *self._NAME_LOOKUPS, *self._PATH_WRITES})
+        self._private = tuple(os.path.join(p, "") for p in private)  # the places the agent must not look into ...
+        self._visible = tuple(os.path.join(v, "") for v in visible)  # ... but for what the sandbox shows it there
+        self._watched = frozenset({"socket.__new__", "open", *self._NAME_LOOKUPS, *self._PATH_WRITES,
+                                   *self._PATH_READS})
 
     def __call__(self, event: str, args: tuple) -> None:
         if event not in self._watched:
@@ -304,6 +324,10 @@ class _AuditHook:
             writes = (flags != -1 and flags & self._WRITE_FLAGS) or (isinstance(mode, str) and set(mode) & set("wax+"))
             if writes:
                 self._check_write(path)
+            else:
+                self._check_read(path)
+        elif event in self._PATH_READS:
+            self._check_read(args[0])
         else:
             for position in self._PATH_WRITES[event]:
                 self._check_write(args[position])
@@ -316,6 +340,17 @@ class _AuditHook:
                                                        or where.startswith(self._read_only)):
             self._refuse(f"the agent tried to write {os.fsdecode(path)}, outside its scratch directory {self._scratch} "
                          f"(agents may write only there and in /tmp)")
+
+    def _check_read(self, path: object) -> None:
+        if not self._private or not isinstance(path, (str, bytes, os.PathLike)):
+            return  # nothing private, or a file descriptor
+        given = os.fsdecode(path)
+        where = os.path.join(os.path.realpath(given), "")  # a symlink in the scratch dir leads where it points
+        if where.startswith(self._private) and not where.startswith(self._visible):
+            real = where.rstrip("/") or "/"
+            shown = given if real == given else f"{given} (that is {real})"
+            self._refuse(f"the agent tried to read {shown}, which the sandbox keeps from it (agents may read only "
+                         f"their own directory, their checkpoint, the Python install and their scratch directory)")
 
     @staticmethod
     def _refuse(message: str) -> None:

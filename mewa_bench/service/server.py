@@ -1,8 +1,9 @@
 """`mewa-bench serve`: the API (uvicorn, one process) and its evaluation workers (N processes).
 
 At start: the data dir, the schema migrations, and a sweep of upload files that no row points at
-(a server killed mid-upload). The workers are child processes, restarted if one dies; on SIGINT or
-SIGTERM the API stops taking requests and each worker puts its running job back in the queue.
+(a server killed mid-upload; `uploads.sweep_orphans` says which are certainly orphaned). The
+workers are child processes, restarted if one dies; on SIGINT or SIGTERM the API stops taking
+requests and each worker puts its running job back in the queue.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import os
 import signal
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import IO, TYPE_CHECKING
 
 from mewa_bench.service.settings import Settings
 
@@ -25,25 +26,32 @@ RESTART_DELAY = 1.0  # seconds between restarts of a dead worker
 STOP_TIMEOUT = 20.0  # seconds a worker gets to put its job back before it is killed
 
 
-def prepare(settings: Settings) -> None:
-    """Create the data dir, migrate the database, and remove orphaned upload files."""
+def prepare(settings: Settings) -> IO[str]:
+    """Create the data dir, migrate the database, and remove orphaned upload files (any age if this is the data dir's
+    only API process, else only old ones: `uploads.hold_api_lock`). Returns the API lock, to hold while serving."""
     from sqlalchemy import select
 
     from mewa_bench.service.db import make_engine, migrate, session_factory
     from mewa_bench.service.models import Submission
-    from mewa_bench.service.uploads import sweep_orphans
+    from mewa_bench.service.uploads import ORPHAN_AGE, hold_api_lock, share_api_lock, sweep_orphans
 
     settings.data_dir.mkdir(parents=True, exist_ok=True)
+    lock, alone = hold_api_lock(settings)
     engine = make_engine(settings.database_url)
     try:
         migrate(engine)
         with session_factory(engine)() as s:
             referenced = set(s.scalars(select(Submission.file)))
-        removed = sweep_orphans(settings, referenced)
+        removed = sweep_orphans(settings, referenced, min_age=0.0 if alone else ORPHAN_AGE)
         if removed:
             log.info("removed %d upload file(s) of uploads that were never committed", len(removed))
+        share_api_lock(lock)
+    except BaseException:
+        lock.close()
+        raise
     finally:
         engine.dispose()
+    return lock
 
 
 def _worker_entry(settings: Settings, log_level: int) -> None:
@@ -114,7 +122,7 @@ def run_server(settings: Settings, host: str = "127.0.0.1", port: int = 8000, wo
 
     level = getattr(logging, log_level.upper(), logging.INFO)
     logging.basicConfig(level=level, format="%(asctime)s %(name)s[%(process)d] %(levelname)s %(message)s")
-    prepare(settings)
+    api_lock = prepare(settings)
     _warn_without_sandbox(workers)
     app = create_app(settings)
     pool = WorkerPool(settings, workers, level)
@@ -130,6 +138,7 @@ def run_server(settings: Settings, host: str = "127.0.0.1", port: int = 8000, wo
     finally:
         pool.stop()
         app.state.engine.dispose()
+        api_lock.close()
 
 
 def _warn_without_sandbox(workers: int) -> None:

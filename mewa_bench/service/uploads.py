@@ -8,12 +8,21 @@ no agent, an unsafe or oversized checkpoint archive. Re-scoring (`scoring`) is t
 
 Files are written under a fresh name, fsynced and renamed into place before the database row that
 points at them is committed; `sweep_orphans` removes the files of uploads whose row never came
-(a server killed in between).
+(a server killed in between). It runs when an API process starts (`server.prepare`), and the rule
+for what is certainly orphaned is the data dir's API lock (`hold_api_lock`): every running API
+process holds `<data dir>/api.lock` shared. One that starts and gets it exclusively is the only API
+process on the data dir, and one that has just started has no upload in flight, so every file
+without a row is an orphan, whatever its age. One that starts beside others (the lock is held
+shared) removes only files older than ORPHAN_AGE: a younger one may be another process's upload
+between its file and its commit. Only API processes write uploads (workers never do). The lock is
+flock(2), seen by every process of one machine; API processes on several machines sharing the data
+dir over storage without shared locks must keep to one API process per data dir (see the README).
 """
 
 from __future__ import annotations
 
 import ast
+import fcntl
 import hashlib
 import json
 import os
@@ -36,6 +45,7 @@ AGENT_ARG_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 MAX_AGENT_ARGS = 32
 MAX_ARCHIVE_MEMBERS = 10_000
 ORPHAN_AGE = 60.0  # seconds: younger files may belong to an upload still being committed
+API_LOCK = "api.lock"  # in the data dir: held shared by every running API process
 
 
 @dataclass(frozen=True)
@@ -80,12 +90,16 @@ def parse_results(data: bytes) -> Any:
         raise bad_request("invalid_json", f"the results file is not valid JSON: {e}") from None
 
 
-# What a run is: the suite, seeds and env it was played on and the episodes it played. Who claims it,
-# how it was isolated and the aggregates derived from the episodes are not part of it, so the same
-# episodes under a new agent name, or with retouched aggregates, are a replay (one run cannot fill a
-# board). A rejected or failed submission gives its digest up (`jobs.free_digest`).
+# What a run is: the suite, seeds and env it was played on and the episodes it played (their env
+# seeds, which `check_run` holds to the protocol's, and returns, to which the normalised returns and
+# scores must agree). Who claims it, how it was isolated, the episode lengths (not scored) and the
+# aggregates derived from the episodes are not part of it, so the same episodes under a new agent
+# name, with other lengths or with retouched aggregates are a replay (one run cannot fill a board).
+# Returns that differ make another run: a results upload cannot prove it was played (the server's
+# own evaluation of agent files can). A rejected or failed submission gives its digest up
+# (`jobs.free_digest`).
 RUN_FIELDS = ("suite", "seeds", "episodes_per_pair", "env", "protocol_version")
-UNIT_FIELDS = ("pair", "seed", "task", "env_seeds", "returns", "lengths")
+UNIT_FIELDS = ("pair", "seed", "task", "env_seeds", "returns")
 
 
 def results_digest(results: dict[str, Any]) -> str:
@@ -293,8 +307,27 @@ def remove_upload(settings: Settings, relative: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def sweep_orphans(settings: Settings, referenced: set[str], now: float | None = None) -> list[Path]:
-    """Remove upload files no submission row points at (older than ORPHAN_AGE); returns what was removed."""
+def hold_api_lock(settings: Settings) -> tuple[IO[str], bool]:
+    """Take the data dir's API lock exclusively if no other API process holds it (True: alone), else shared; the
+    caller sweeps, then `share_api_lock`, and keeps the file open while it serves."""
+    lock = open(settings.data_dir / API_LOCK, "a")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return lock, True
+    except BlockingIOError:
+        fcntl.flock(lock, fcntl.LOCK_SH)  # waits only while another process starting alone sweeps
+        return lock, False
+
+
+def share_api_lock(lock: IO[str]) -> None:
+    """Turn an exclusive API lock into the shared one every running API process holds."""
+    fcntl.flock(lock, fcntl.LOCK_SH)
+
+
+def sweep_orphans(settings: Settings, referenced: set[str], now: float | None = None,
+                  min_age: float = ORPHAN_AGE) -> list[Path]:
+    """Remove upload files no submission row points at, if at least `min_age` seconds old (0: any age, only when no
+    upload can be in flight); returns what was removed."""
     now = time.time() if now is None else now
     removed: list[Path] = []
     uploads = settings.uploads_dir
@@ -305,7 +338,7 @@ def sweep_orphans(settings: Settings, referenced: set[str], now: float | None = 
             age = now - path.lstat().st_mtime
         except FileNotFoundError:
             continue
-        if age < ORPHAN_AGE:
+        if age < min_age:
             continue
         relative = path.relative_to(settings.data_dir)
         if path.parent.name == "agents":

@@ -4,17 +4,30 @@ A submission is accepted (202) only after every check that needs no scoring has 
 stored and queued in one transaction with its jobs (re-scoring for a results file; evaluation on
 the public suite and on its hidden twin for an agent). Rejections are 4xx with the reason: 400
 malformed, 401 token, 409 replayed, 413 too large, 422 content, 429 rate limit or quota.
+
+What the public status (this JSON and the page `/submissions/<id>`) shows of a job on a hidden
+suite: whatever a board of that suite shows anyway, and nothing from which its pairs could be
+learned. Its error is reduced to its kind ("the agent failed (exception)", "sandbox rule broken
+(network)", "the service gave up"): the full text names the pair, seed, episode and step and
+carries the agent's own output, which an agent could fill with what it saw of the hidden workers.
+Its unit counts are replaced by a progress in tenths (units = pairs x seeds would give the number
+of curated pairs), and its scores lose `units`, `control_variates` (episode counts) and
+`comparisons` (per-reference differences and probabilities of improvement), keeping the means,
+CIs, curve, adaptability, skill and verdicts its board row has. The full record stays in the
+database, shown to the admin by `mewa-bench serve show ID`. Public suites' jobs are shown whole.
 """
 
 from __future__ import annotations
 
 import json
+import re
 import time
 from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
 from mewa_bench.service.errors import ApiError, not_found
+from mewa_bench.service.faults import crash_point
 from mewa_bench.service.limits import DAY, quota_error
 from mewa_bench.service.models import AGENT, DONE, EVALUATE, FAILED, QUEUED, REJECTED, RESULTS, RUNNING, SCORE
 from mewa_bench.service.routes.context import session, settings_of, submitter
@@ -107,6 +120,7 @@ def submit_results(request: Request, file: UploadFile = File(..., description="A
     data = read_limited(file, settings.limits.results_bytes, "the results file")
     checked = check_results(data, settings, request.app.state.suites)
     relative = store_results(settings, data)
+    crash_point("results-stored")
     try:
         submission_id = _commit(request, token, RESULTS, checked.suite, checked.digest, checked.agent_name,
                                 checked.agent_sha256, relative, [(SCORE, checked.suite, False, checked.seeds)])
@@ -146,6 +160,7 @@ def submit_agent(request: Request,
     finally:
         if archive is not None:
             archive.unlink(missing_ok=True)
+    crash_point("agent-stored")
     try:
         submission_id = _commit(request, token, AGENT, suite, checked.digest, checked.name, checked.agent_sha256,
                                 relative, jobs, checked.agent_args)
@@ -170,8 +185,9 @@ def overall_status(states: list[str]) -> str:
     return RUNNING if RUNNING in states or DONE in states else QUEUED
 
 
-def describe(s: Session, submission: Submission) -> dict[str, Any]:
-    """A submission's status, its jobs and its scores."""
+def describe(s: Session, submission: Submission, full: bool = False) -> dict[str, Any]:
+    """A submission's status, its jobs and its scores; hidden-suite jobs as the public may see them unless `full`
+    (the admin's view)."""
     from sqlalchemy import select
 
     from mewa_bench.service.models import BoardEntry, Job
@@ -179,16 +195,51 @@ def describe(s: Session, submission: Submission) -> dict[str, Any]:
     jobs = s.scalars(select(Job).where(Job.submission_id == submission.id).order_by(Job.id)).all()
     entries = {e.job_id: e for e in s.scalars(select(BoardEntry).where(BoardEntry.submission_id == submission.id))}
     status = overall_status([j.state for j in jobs])
-    failed = [j for j in jobs if j.state in (REJECTED, FAILED)]
+    shown = [_job_view(j) if full or not j.hidden else public_job(_job_view(j)) for j in jobs]
+    failed = [j for j in shown if j["state"] in (REJECTED, FAILED)]
+    scores: dict[str, Any] = {}
+    for j in (j for j in jobs if j.id in entries):
+        stored = json.loads(entries[j.id].scores)
+        scores[j.board] = stored if full or not j.hidden else public_scores(stored)
     return {
         "id": submission.id, "kind": submission.kind, "suite": submission.suite, "agent": submission.agent_name,
         "agent_sha256": submission.agent_sha256, "created": submission.created, "status": status,
-        "reason": f"{failed[0].board}: {failed[0].error}" if failed else None,
-        "jobs": [{"board": j.board, "hidden": j.hidden, "kind": j.kind, "state": j.state, "attempts": j.attempts,
-                  "units_done": j.units_done, "units_total": j.units_total, "resumed_units": j.resumed_units,
-                  "error": j.error, "started": j.started, "finished": j.finished} for j in jobs],
-        "scores": {j.board: json.loads(entries[j.id].scores) for j in jobs if j.id in entries},
+        "reason": f"{failed[0]['board']}: {failed[0]['error']}" if failed else None, "jobs": shown, "scores": scores,
     }
+
+
+def _job_view(job: Any) -> dict[str, Any]:
+    """Everything the database has on a job that a status shows."""
+    return {"board": job.board, "hidden": job.hidden, "kind": job.kind, "state": job.state, "attempts": job.attempts,
+            "units_done": job.units_done, "units_total": job.units_total, "resumed_units": job.resumed_units,
+            "progress": None if not job.units_total else job.units_done / job.units_total,
+            "error": job.error, "note": job.note, "started": job.started, "finished": job.finished}
+
+
+# The kind of error at the head of a job's error (worker.run_job, evaluation.run_agent_job): what the public may see
+_ERROR_KIND = re.compile(r"^(sandbox rule broken \([a-z_]+\)|the agent failed \([a-z_]+\)|the service gave up)")
+WITHHELD = "details of runs on a hidden suite are kept for the server's admin"
+HIDDEN_SCORE_FIELDS = ("units", "control_variates", "comparisons")
+
+
+def public_reason(error: str | None) -> str | None:
+    """A hidden job's error as the public sees it: its kind only."""
+    if error is None:
+        return None
+    kind = _ERROR_KIND.match(error)
+    return f"{kind.group(1) if kind else 'an error'} on the hidden suite ({WITHHELD})"
+
+
+def public_job(job: dict[str, Any]) -> dict[str, Any]:
+    """A hidden job as the public sees it: no unit counts (progress in tenths), the kind of its error only."""
+    progress = job["progress"]
+    return {**job, "units_done": None, "units_total": None, "resumed_units": None, "error": public_reason(job["error"]),
+            "progress": None if progress is None else int(progress * 10) / 10}
+
+
+def public_scores(scores: dict[str, Any]) -> dict[str, Any]:
+    """A hidden board's scores as the public sees them: without unit and episode counts and the comparisons."""
+    return {k: v for k, v in scores.items() if k not in HIDDEN_SCORE_FIELDS}
 
 
 @router.get("/{submission_id}", summary="A submission's status")

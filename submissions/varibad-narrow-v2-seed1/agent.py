@@ -1,0 +1,14 @@
+"""VariBAD agent trained by `mewa-bench train varibad --suite narrow-v2 --seed 1 --steps 4000000 --out submissions/varibad-narrow-v2-seed1`; plays the checkpoint beside this file.
+
+Evaluate it: `mewa-bench evaluate submissions/varibad-narrow-v2-seed1/agent.py --suite narrow-v2`.
+"""
+
+from pathlib import Path
+
+from mewa_bench.agents.varibad import VariBADAgent
+
+PRIVILEGED = False
+
+
+def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
+    return VariBADAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), seed=seed, greedy=greedy)
