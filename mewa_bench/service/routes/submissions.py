@@ -196,7 +196,7 @@ def describe(s: Session, submission: Submission, full: bool = False) -> dict[str
     entries = {e.job_id: e for e in s.scalars(select(BoardEntry).where(BoardEntry.submission_id == submission.id))}
     status = overall_status([j.state for j in jobs])
     shown = [_job_view(j) if full or not j.hidden else public_job(_job_view(j)) for j in jobs]
-    failed = [j for j in shown if j["state"] in (REJECTED, FAILED)]
+    failed = sorted((j for j in shown if j["state"] in (REJECTED, FAILED)), key=lambda j: j["hidden"])  # public first
     scores: dict[str, Any] = {}
     for j in (j for j in jobs if j.id in entries):
         stored = json.loads(entries[j.id].scores)
