@@ -16,8 +16,8 @@ def return_bounds(task: Task) -> tuple[float, float]:
     return r_min, r_max
 
 
-def normalised_return(task: Task, episode_return: float) -> float:
-    """(R - R_min) / (R_max - R_min)."""
+def normalised_return(task: Task, episode_return: np.ndarray | float) -> np.ndarray | float:
+    """(R - R_min) / (R_max - R_min), for one return or an array of them."""
     r_min, r_max = return_bounds(task)
     return (episode_return - r_min) / (r_max - r_min)
 

@@ -13,13 +13,14 @@ import json
 import re
 from collections import Counter
 from dataclasses import dataclass
+from itertools import zip_longest
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 from mewa_bench.design.suites import ALL_SUITES, Suite, SuiteError, load_suite
-from mewa_bench.game.normalise import normalised_return, return_bounds
+from mewa_bench.game.normalise import normalised_return
 from mewa_bench.protocol.results import PROTOCOL_VERSION, ResultsError, read_results
 from mewa_bench.protocol.config import EPISODES_PER_PAIR, default_seeds, env_seed
 from mewa_bench.protocol.scoring import Scores, episode_scores, score_units
@@ -199,20 +200,16 @@ def _check_episodes(unit: dict[str, Any], suite: Suite, key: tuple[int, int]) ->
     where = f"unit (pair {pair}, seed {seed})"
     task = suite.tasks[suite.pairs[pair].task_index]
     expected = [env_seed(suite.sha256, pair, seed, k) for k in range(EPISODES_PER_PAIR)]
-    played = unit["env_seeds"]
-    for k in range(max(len(played), len(expected))):
-        if k >= len(played) or k >= len(expected) or played[k] != expected[k]:
-            got = played[k] if k < len(played) else "none"
-            raise InvalidResults(f"{where}, episode {k}: env seed {got} is not the protocol's "
-                                 f"{expected[k] if k < len(expected) else 'none'} (derived from the suite hash, pair, "
-                                 f"seed and episode)")
+    for k, (got, want) in enumerate(zip_longest(unit["env_seeds"], expected, fillvalue="none")):
+        if got != want:
+            raise InvalidResults(f"{where}, episode {k}: env seed {got} is not the protocol's {want} (derived from the "
+                                 f"suite hash, pair, seed and episode)")
     for k, length in enumerate(unit["lengths"]):
         if not isinstance(length, int) or isinstance(length, bool) or not 1 <= length <= task.T:
             raise InvalidResults(f"{where}, episode {k}: length {length!r} is not a step count in 1..{task.T}")
-    r_min, r_max = return_bounds(task)
     returns = np.asarray(unit["returns"], dtype=np.float64)
     stored = np.asarray(unit["normalised_returns"], dtype=np.float64)
-    off = np.flatnonzero(~(np.abs((returns - r_min) / (r_max - r_min) - stored) <= TOLERANCE))
+    off = np.flatnonzero(~(np.abs(normalised_return(task, returns) - stored) <= TOLERANCE))
     if len(off):
         k = int(off[0])
         raise InvalidResults(f"{where}, episode {k}: normalised return {float(stored[k])!r} is not that of its return "

@@ -8,6 +8,7 @@ import numpy as np
 
 from mewa_bench.design.curate import ratios_to_best
 from mewa_bench.design.generate import GAP_TARGETS
+from mewa_bench.design.prior_gap import CURATED, DRAWS, META_TRAIN, TEST_REGION, prior_gaps
 from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
 from mewa_bench.files import write_atomic
 from mewa_bench.game.distributions import worker_families
@@ -178,7 +179,38 @@ def recommendation_section(suites: list[Suite]) -> str:
                   "seeds (256 narrow, 96 wide) the shipped agents' paired differences with the best fixed policy have 95% "
                   "CI half-widths of at most 0.003 (leaderboards/, docs/protocol.md): under 1% of the v2 gaps, but up to "
                   "10-30% of the v1 gaps."]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + prior_gap_lines(suites)) + "\n"
+
+
+def prior_gap_lines(suites: list[Suite]) -> list[str]:
+    """Markdown lines: each suite's non-adaptive gap under the distributions an agent may expect."""
+    lines = ["", "### What adaptation can win, by the workers an agent expects", "",
+             "The non-adaptive gap of a distribution of workers is what knowing the worker adds per episode to the "
+             "best fixed policy *for that distribution*: the expected value of perfect information of an agent whose "
+             "prior it is (`mewa_bench.design.prior_gap`; t-optimal policies, exact values; meta-train: "
+             f"{DRAWS:,} seeded draws of the public sampler per task; test region: every public meta-test candidate, "
+             "equally weighted). *On curated* is what that distribution's best fixed policy (per task) scores on the "
+             "suite's pairs.", "",
+             "| suite | gap: curated pairs | gap: meta-train | gap: test region | on curated: meta-train's best fixed "
+             "| on curated: test region's best fixed | on curated: best fixed |", "|---|---|---|---|---|---|---|"]
+    rows = {suite.name: {row.distribution: row for row in prior_gaps(suite)} for suite in suites}
+    for suite in suites:
+        g = rows[suite.name]
+        lines.append(f"| {suite.name} | {g[CURATED].gap:.4f} | {g[META_TRAIN].gap:.4f} | {g[TEST_REGION].gap:.4f} "
+                     f"| {g[META_TRAIN].on_curated:.4f} | {g[TEST_REGION].on_curated:.4f} | {g[CURATED].on_curated:.4f} |")
+    lines += ["", "On v1 the curated gap is almost all there is: under the meta-train distribution knowing the worker is "
+              "worth a few thousandths of a score per episode, and over the whole test region even less, because "
+              "parallel building with leftovers is near-optimal for nearly every paper worker; curation picks the rare "
+              "workers where it is not, and the best fixed policy is chosen on them. An agent whose prior is the "
+              "meta-train distribution therefore has little reason to pay for exploration on v1 and cannot be "
+              "expected to beat that best fixed policy by a measurable margin (see "
+              "submissions/bayes-explorer/README.md)."]
+    if {"narrow-v1", "narrow-v2"} <= rows.keys():
+        v1, v2 = rows["narrow-v1"][CURATED].gap, rows["narrow-v2"]
+        lines[-1] += (" On v2 adaptation pays under every distribution: narrow-v2's meta-train gap alone is "
+                      f"{v2[META_TRAIN].gap / v1:.1f}x narrow-v1's curated gap, its test-region gap "
+                      f"{v2[TEST_REGION].gap / v1:.1f}x.")
+    return lines
 
 
 def families_section(suite: Suite) -> list[str]:

@@ -1,0 +1,14 @@
+"""PEARL agent trained by `mewa-bench train pearl --suite wide-v2 --seed 1 --steps 4000000 --out submissions/pearl-wide-v2-seed1`; plays the checkpoint beside this file.
+
+Evaluate it: `mewa-bench evaluate submissions/pearl-wide-v2-seed1/agent.py --suite wide-v2`.
+"""
+
+from pathlib import Path
+
+from mewa_bench.agents.pearl import PEARLAgent
+
+PRIVILEGED = False
+
+
+def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
+    return PEARLAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), seed=seed, greedy=greedy)
