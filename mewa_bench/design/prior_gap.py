@@ -19,6 +19,7 @@ from mewa_bench.design.exact import expected_returns
 from mewa_bench.design.policies import toptimal_family
 from mewa_bench.design.suites import Suite
 from mewa_bench.game.distributions import meta_test_candidates, sample_meta_train_workers
+from mewa_bench.game.task import Task
 
 CURATED, META_TRAIN, TEST_REGION = "curated", "meta-train", "test region"
 DISTRIBUTIONS = (CURATED, META_TRAIN, TEST_REGION)
@@ -36,7 +37,7 @@ class PriorGap:
     workers: int  # workers the gap averages over (all tasks)
 
 
-def usable_values(task, workers: np.ndarray, min_best: float) -> np.ndarray:
+def usable_values(task: Task, workers: np.ndarray, min_best: float) -> np.ndarray:
     """[W, P] exact expected returns of the t-optimal family, for workers whose best return >= min_best."""
     values = expected_returns(task, toptimal_family(task.N), workers).T
     return values[values.max(axis=1) >= min_best]
