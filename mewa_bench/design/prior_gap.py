@@ -57,19 +57,17 @@ def task_workers(suite: Suite, t: int, distribution: str, draws: int, seed: int)
 
 def prior_gaps(suite: Suite, draws: int = DRAWS, seed: int = SEED) -> list[PriorGap]:
     """The suite's non-adaptive gap under each distribution of DISTRIBUTIONS (tasks weighted by their pairs)."""
-    min_best = float(suite.content["generator"]["min_best_return"])
-    weights = np.array([sum(p.task_index == t for p in suite.pairs) for t in range(len(suite.tasks))], dtype=float)
+    min_best = float(suite.content["generator"]["min_best_return"])  # curation kept only such workers too
+    tasks = range(len(suite.tasks))
+    weights = np.array([sum(p.task_index == t for p in suite.pairs) for t in tasks], dtype=float)
     weights /= weights.sum()
-    curated = [usable_values(suite.tasks[t], task_workers(suite, t, CURATED, draws, seed), 0.0)
-               for t in range(len(suite.tasks))]
+    values = {d: [usable_values(suite.tasks[t], task_workers(suite, t, d, draws, seed), min_best) for t in tasks]
+              for d in DISTRIBUTIONS}
+    curated_ratios = [best_fixed_policy(v)[1] for v in values[CURATED]]
     out = []
-    for distribution in DISTRIBUTIONS:
-        gaps, on_curated, count = [], [], 0
-        for t, task in enumerate(suite.tasks):
-            values = usable_values(task, task_workers(suite, t, distribution, draws, seed), min_best)
-            count += len(values)
-            gaps.append(non_adaptive_gap(values))
-            best, _ = best_fixed_policy(values)
-            on_curated.append(float(best_fixed_policy(curated[t])[1][:, best].mean()))
-        out.append(PriorGap(distribution, float(weights @ gaps), float(weights @ on_curated), count))
+    for distribution, per_task in values.items():
+        gaps = [non_adaptive_gap(v) for v in per_task]
+        on_curated = [float(ratios[:, best_fixed_policy(v)[0]].mean()) for ratios, v in zip(curated_ratios, per_task)]
+        out.append(PriorGap(distribution, float(weights @ gaps), float(weights @ on_curated),
+                            sum(len(v) for v in per_task)))
     return out

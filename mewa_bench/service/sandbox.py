@@ -162,11 +162,12 @@ def sandbox_launcher(readable: list[Path], scratch: Path, limits: SandboxLimits,
                      private: list[Path] | None = None) -> Launcher:
     """The Launcher that starts the agent process in bwrap, seeing `readable` (read-only) and `scratch`; reading
     `private` (outside those) is reported as a violation."""
-    prefix, layout = _bwrap_command([*_python_dirs(), *readable], scratch, limits)
+    shown = [*_python_dirs(), *readable]
+    prefix, layout = _bwrap_command(shown, scratch, limits)
     settings = {"cpu_seconds": limits.cpu_seconds, "processes": limits.processes, "file_bytes": limits.file_bytes,
                 "open_files": limits.open_files, "scratch": str(scratch), "writable": ["/tmp", "/dev", "/proc/self"],
                 "read_only": [str(p) for p in layout], "private": [os.path.realpath(p) for p in private or []],
-                "visible": [os.path.realpath(p) for p in [*_python_dirs(), *readable, scratch]]}
+                "visible": [os.path.realpath(p) for p in [*shown, scratch]]}
     package_parent = Path(__file__).resolve().parents[2]
     environment = {"PATH": "/usr/local/bin:/usr/bin:/bin", "HOME": str(scratch), "TMPDIR": str(scratch),
                    "PYTHONPATH": str(package_parent), "PYTHONDONTWRITEBYTECODE": "1", "PYTHONNOUSERSITE": "1",

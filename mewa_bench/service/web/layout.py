@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import html
-import time
+
+from mewa_bench.service.jobs import utc_text
 
 STYLE = """body{font-family:system-ui,sans-serif;color:#222;max-width:90em;margin:1.5em auto;padding:0 1em}
 nav{margin-bottom:1em;font-size:.9em}nav a{margin-right:1em}
@@ -49,8 +50,8 @@ def with_ci(estimate: dict | None) -> str:
 
 
 def utc(seconds: float | None) -> str:
-    """Unix seconds as `2026-11-23 18:02:01 UTC`, empty when absent."""
-    return "" if seconds is None else time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(seconds))
+    """Unix seconds as `2026-11-23 18:02:01 UTC` (the jobs' notes' format), empty when absent."""
+    return "" if seconds is None else utc_text(seconds)
 
 
 def not_found_page(what: str) -> str:
