@@ -93,7 +93,7 @@ def main() -> None:
     print(f"{'configuration':<52} {'steps/s':>14} {'x baseline':>11}")
     for name, rate in rows:
         print(f"{name:<52} {rate:>14,.0f} {rate / base:>10.1f}x")
-    # Meta-training (issue 12: within 1.5x of the fixed worker): workers sampled from the meta-train
+    # Meta-training (target: within 1.5x of the fixed worker): workers sampled from the meta-train
     # distribution at every reset, and meta-episodes of 10 episodes per pair.
     n = 4096
     fixed = time_batched(n, args.seconds)

@@ -7,12 +7,20 @@ Agent steps/s count the play only; the scoring (reference replays + bootstrap) i
 SPEC / issue targets: isolated >= 100,000 agent steps/s; bayes-adaptive on narrow-v1 with the
 default protocol in under 60 s (`--bayes`).
 
-    .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes]
+`--neural`: a small torch GRU (64 units, the README's batched example) against the same network
+written as a one-lane agent (`benchmarks/agents/gru_one_lane.py`: one object and one forward pass per
+lane and step), isolated, default lanes, on narrow-v2. Targets: batched >= 20x the one-lane agent
+steps/s, and >= 50,000 agent steps/s with --jobs 2.
+`--learned`: a ranked wide-v2 run (96 seeds, 7,680 units) of each shipped learned baseline with
+--jobs 2, against the random agent's in the same run. Target: each within 3 minutes.
+
+    .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes] [--neural] [--learned]
 """
 
 from __future__ import annotations
 
 import argparse
+import re
 import tempfile
 import time
 from pathlib import Path
@@ -73,7 +81,15 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--seeds", type=int, default=50, help="seeds of the random-agent runs (bayes-adaptive: the default 256)")
     parser.add_argument("--bayes", action="store_true", help="also time bayes-adaptive with the default protocol")
+    parser.add_argument("--neural", action="store_true", help="also time a torch GRU agent, one-lane vs batched")
+    parser.add_argument("--learned", action="store_true", help="also time ranked wide-v2 runs of the learned baselines")
     args = parser.parse_args()
+    if args.neural:
+        neural(seeds=tuple(range(min(args.seeds, 16))))
+    if args.learned:
+        learned()
+    if args.neural or args.learned:
+        return
     seeds = tuple(range(args.seeds))
     env_rate = env_steps_per_second()
     print(f"narrow-v1, {len(seeds)} seeds, random agent")
@@ -92,6 +108,42 @@ def main() -> None:
         for label, kw in (("bayes-adaptive, default protocol", {}), ("bayes-adaptive, --jobs 2", dict(jobs=2))):  # 256 seeds
             total, scoring, steps = timed(agent, default_seeds("narrow-v1"), **kw)
             print(f"{label:<40} {steps / (total - scoring):>14,.0f}   total {total:.1f} s (target < 60 s)")
+
+
+def readme_gru_agent(folder: Path) -> Path:
+    """The README's batched GRU example, written to a file in `folder`."""
+    blocks = re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), re.S)
+    path = folder / "gru_batched.py"
+    path.write_text(next(b for b in blocks if "class VectorAgent" in b and "import torch" in b))
+    return path
+
+
+def neural(seeds: tuple[int, ...]) -> None:
+    """One-lane vs batched torch GRU agent steps/s under isolated evaluate (narrow-v2)."""
+    print(f"narrow-v2, {len(seeds)} seeds, torch GRU (64 units)")
+    print(f"{'configuration':<40} {'agent steps/s':>14} {'x 1-lane':>8} {'play s':>7}")
+    with tempfile.TemporaryDirectory() as tmp:
+        batched = readme_gru_agent(Path(tmp))
+        base = None
+        for label, agent, kw in (("one-lane objects, default lanes", REPO / "benchmarks/agents/gru_one_lane.py", {}),
+                                 ("batched, default lanes", batched, {}),
+                                 ("batched, default lanes, --jobs 2", batched, dict(jobs=2))):
+            total, scoring, steps = timed(agent, seeds, suite="narrow-v2", **kw)
+            rate = steps / (total - scoring)
+            base = base or rate
+            print(f"{label:<40} {rate:>14,.0f} {rate / base:>8.1f} {total - scoring:>7.1f}")
+
+
+def learned() -> None:
+    """Ranked wide-v2 runs (default seeds) with --jobs 2: random, then each learned baseline's wide-v2 run."""
+    seeds = default_seeds("wide-v2")
+    print(f"wide-v2, {len(seeds)} seeds (ranked run), --jobs 2")
+    print(f"{'agent':<28} {'play s':>7} {'scoring s':>9} {'total s':>8} {'x random':>9}")
+    base = None
+    for name in ("random", "rl2-wide-v2-seed1", "varibad-wide-v2-seed1", "pearl-wide-v2-seed1", "maml-wide-v2-seed1"):
+        total, scoring, _ = timed(REPO / "submissions" / name / "agent.py", seeds, suite="wide-v2", jobs=2)
+        base = base or total
+        print(f"{name:<28} {total - scoring:>7.1f} {scoring:>9.1f} {total:>8.1f} {total / base:>9.2f}")
 
 
 if __name__ == "__main__":

@@ -9,12 +9,12 @@ seeds needed for adaptability <= 0.01 and mean score <= 0.005 (half-width ~ 1/sq
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from pathlib import Path
 
 from mewa_bench.design.suites import load_suite
+from mewa_bench.protocol.results import read_results
 from mewa_bench.protocol.scoring import score_units
 
 TARGETS = {"adaptability": 0.01, "mean": 0.005}
@@ -29,7 +29,7 @@ def main(paths: list[Path]) -> None:
     print(f"{'agent':<22} {'suite':<10} {'seeds':>5}  {'hw mean':>8} {'hw adapt':>8} {'raw hw adapt':>12}"
           f"  {'seeds for mean':>14} {'seeds for adapt':>15}")
     for path in paths:
-        results = json.loads(path.read_text())
+        results = read_results(path)
         if results.get("protocol_version") != 2 or not results.get("complete"):
             continue
         suite = load_suite(results["suite"]["name"])

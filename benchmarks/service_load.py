@@ -27,6 +27,7 @@ import argparse
 import asyncio
 import json
 import os
+import random
 import shutil
 import signal
 import socket
@@ -42,7 +43,7 @@ import numpy as np
 
 from mewa_bench.design.suites import load_suite
 from mewa_bench.files import json_text
-from mewa_bench.protocol.results import finish
+from mewa_bench.protocol.results import finish, read_results, results_text
 
 REPO = Path(__file__).resolve().parents[1]
 AGENT = REPO / "submissions" / "random" / "agent.py"
@@ -69,6 +70,7 @@ class Sent:
     expected_scores: dict[str, Any] | None = None
     body: bytes = b""
     agent_args: dict[str, str] = field(default_factory=dict)
+    busy: int = 0  # 503 answers (the server receiving its limit of submissions at once), each retried
 
 
 # -- the load --------------------------------------------------------------------------------------
@@ -77,7 +79,7 @@ def base_results(seeds: int) -> list[dict[str, Any]]:
     suite = load_suite(SUITE)
     out = []
     for path in sorted((REPO / "submissions").glob(f"*/results-{SUITE}.json")):
-        results = json.loads(path.read_text())
+        results = read_results(path)
         results["units"] = [u for u in results["units"] if u["seed"] < seeds]
         results["seeds"] = list(range(seeds))
         out.append(finish(results, suite))
@@ -102,7 +104,7 @@ def results_uploads(count: int, seeds: int, tokens: list[str], scratch: Path) ->
     for i, results in enumerate(runs):
         name = f"{results['agent']['name']}-load-{i:03d}"
         renamed = {**results, "agent": {**results["agent"], "name": name}}
-        uploads.append(Sent("results", name, tokens[i % len(tokens)], body=json_text(renamed).encode(),
+        uploads.append(Sent("results", name, tokens[i % len(tokens)], body=results_text(renamed).encode(),
                             expected_scores=results["scores"]))
     return uploads
 
@@ -113,17 +115,23 @@ def agent_submissions(count: int, tokens: list[str]) -> list[Sent]:
             for i in range(count)]
 
 
-async def send(client: Any, url: str, item: Sent) -> None:
-    """POST one submission and note when it was answered."""
+async def send(client: Any, url: str, item: Sent, jitter: random.Random) -> None:
+    """POST one submission (again after Retry-After, with jitter, while the server is busy) and note when it was
+    answered."""
     headers = {"Authorization": f"Bearer {item.token}"}
     item.sent = time.perf_counter()
-    if item.kind == "results":
-        response = await client.post(f"{url}/api/submissions/results", headers=headers,
-                                     files={"file": (f"{item.name}.json", item.body, "application/json")})
-    else:
-        data = {"suite": SUITE, "name": item.name, "agent_arg": [f"{k}={v}" for k, v in item.agent_args.items()]}
-        response = await client.post(f"{url}/api/submissions/agent", headers=headers, data=data,
-                                     files={"agent": (AGENT.name, AGENT.read_bytes(), "text/x-python")})
+    while True:
+        if item.kind == "results":
+            response = await client.post(f"{url}/api/submissions/results", headers=headers,
+                                         files={"file": (f"{item.name}.json", item.body, "application/json")})
+        else:
+            data = {"suite": SUITE, "name": item.name, "agent_arg": [f"{k}={v}" for k, v in item.agent_args.items()]}
+            response = await client.post(f"{url}/api/submissions/agent", headers=headers, data=data,
+                                         files={"agent": (AGENT.name, AGENT.read_bytes(), "text/x-python")})
+        if response.status_code != 503:
+            break
+        item.busy += 1
+        await asyncio.sleep(float(response.headers.get("retry-after", "1")) * jitter.uniform(0.2, 1.0))
     item.answered = time.perf_counter()
     item.status_code = response.status_code
     if response.status_code == 202:
@@ -155,7 +163,8 @@ async def run_load(url: str, items: list[Sent], timeout: float) -> tuple[float, 
     limits = httpx.Limits(max_connections=len(items) + 10, max_keepalive_connections=len(items) + 10)
     async with httpx.AsyncClient(limits=limits, timeout=timeout) as client:
         start = time.perf_counter()
-        await asyncio.gather(*(send(client, url, item) for item in items))
+        jitter = random.Random(0)
+        await asyncio.gather(*(send(client, url, item, jitter) for item in items))
         burst_end = time.perf_counter()
         await watch(client, url, items, timeout)
     return start, burst_end
@@ -346,7 +355,9 @@ def report(items: list[Sent], start: float, burst_end: float, base: Baseline, wo
     accepted_by = max(i.answered for i in uploads) - start
     scored_by = max(i.final for i in uploads) - start
     accept_rate, score_rate = len(uploads) / accepted_by, len(uploads) / scored_by
-    print(f"\nburst: {len(items)} requests answered in {burst_end - start:.2f} s")
+    busy = sum(i.busy for i in items)
+    print(f"\nburst: {len(items)} requests answered in {burst_end - start:.2f} s ({busy} busy answers (503) retried "
+          f"by {sum(1 for i in items if i.busy)} of them: the server receives a few submissions at once)")
     print(f"{'throughput':<44}{'measured':>12}{'baseline':>12}{'ratio':>8}")
     print(f"{'results uploads accepted/s (API: 1 process)':<44}{accept_rate:>12.1f}{1 / base.check:>12.1f}"
           f"{accept_rate * base.check:>8.2f}")

@@ -1,4 +1,4 @@
-"""Non-adaptive gap of every shipped suite against its target (issue 11: narrow-v2 >= 0.06, wide-v2 >= 0.04).
+"""Non-adaptive gap of every shipped suite against its target (narrow-v2 >= 0.06, wide-v2 >= 0.04).
 
 The gap is 1 - the best fixed t-optimal policy's mean score (ratio to each pair's max-expected
 baseline): what only adaptation can win. It is read from the suite files (exact values) and

@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from mewa_bench.cli import app
 from mewa_bench.datasets.catalog import add_to_catalog, load_catalog
+from mewa_bench.protocol.results import read_results
 
 REPO = Path(__file__).resolve().parents[1]
 CATALOG = REPO / "datasets" / "index.json"
@@ -31,8 +32,20 @@ def test_shipped_catalog_archives_match_their_entries() -> None:
     from mewa_bench.protocol.results import PROTOCOL_VERSION
 
     raw = json.loads(CATALOG.read_text())
-    assert {"narrow-v1", "narrow-v2", "wide-v2"} <= {entry["suite"] for entry in raw["datasets"]}
-    for entry in raw["datasets"]:
+    recordings = raw["evaluation_recordings"]
+    assert {"narrow-v1", "narrow-v2", "wide-v2"} <= {entry["suite"] for entry in recordings}
+    assert all(entry["kind"] == "training" for entry in raw["datasets"])  # never a recording of test pairs
+    for entry in raw["datasets"]:  # the shipped training data: archive and metadata agree
+        data = (CATALOG.parent / entry["url"]).read_bytes()
+        assert len(data) < 2**20 and len(data) == entry["size"] and hashlib.sha256(data).hexdigest() == entry["sha256"]
+        assert entry["suite_sha256"] == load_suite(entry["suite"]).sha256
+        with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+            meta_file = next(m for m in tar.getmembers() if m.name.endswith("meta/mewa.json"))
+            meta = json.loads(tar.extractfile(meta_file).read())
+        assert meta["kind"] == "training" and meta["behaviour"]["sha256"] == entry["policy_sha256"]
+        assert (meta["ref_min_score"], meta["ref_max_score"]) == (entry["ref_min_score"], entry["ref_max_score"])
+    for entry in recordings:
+        assert entry["kind"] == "evaluation-recording" and "TEST pairs" in entry["warning"]
         archive = CATALOG.parent / entry["url"]  # shipped archives sit beside the catalog
         data = archive.read_bytes()
         assert len(data) == entry["size"] and hashlib.sha256(data).hexdigest() == entry["sha256"]
@@ -53,11 +66,11 @@ def test_shipped_catalog_archives_match_their_entries() -> None:
 def test_download_a_shipped_dataset_and_load_it_with_lerobot(tmp_path: Path) -> None:
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    name = load_catalog(CATALOG)["datasets"][0]["name"]
+    name = load_catalog(CATALOG)["evaluation_recordings"][0]["name"]
     result = runner.invoke(app, ["datasets", "download", name, "--dir", str(tmp_path), "--catalog", str(CATALOG)])
     assert result.exit_code == 0, result.output
     assert "verified" in result.output
-    entry = next(e for e in load_catalog(CATALOG)["datasets"] if e["name"] == name)
+    entry = next(e for e in load_catalog(CATALOG)["evaluation_recordings"] if e["name"] == name)
     ds = LeRobotDataset(f"mewa/{name}", root=tmp_path / name, video_backend="pyav")
     assert ds.num_episodes == entry["episodes"] and ds.num_frames == entry["frames"]
     # the README's fast read of the index columns agrees with frame-by-frame indexing
@@ -68,6 +81,14 @@ def test_download_a_shipped_dataset_and_load_it_with_lerobot(tmp_path: Path) -> 
     assert len(set(cols["pair_index"].tolist())) > 1
     listed = runner.invoke(app, ["datasets", "list", "--catalog", str(CATALOG)])
     assert listed.exit_code == 0 and name[:6] in listed.output
+    flat = " ".join(listed.output.split())
+    assert "Training data" in flat and "Evaluation recordings" in flat and "never train on these" in flat
+    assert flat.index("narrow-v2-train-") < flat.index("Evaluation recordings") < flat.index(name[:12])
+    info = runner.invoke(app, ["datasets", "info", name, "--catalog", str(CATALOG)])
+    assert info.exit_code == 0 and "warning" in info.output and "TEST pairs" in " ".join(info.output.split())
+    training = load_catalog(CATALOG)["datasets"][0]["name"]
+    clean = runner.invoke(app, ["datasets", "info", training, "--catalog", str(CATALOG)])
+    assert clean.exit_code == 0 and "warning" not in clean.output
     missing = runner.invoke(app, ["datasets", "info", "no-such-dataset", "--catalog", str(CATALOG)])
     assert missing.exit_code == 1 and "no-such-dataset" in " ".join(missing.output.split())
 
@@ -79,7 +100,7 @@ def test_record_pack_download_round_trip(tmp_path: Path) -> None:
     result = runner.invoke(app, ["record", "--policy", "max-expected", "--out", str(out), "--pairs", "0,2",
                                  "--log", "mcap", "--log-dir", str(tmp_path / "logs")])
     assert result.exit_code == 0, result.output
-    results = json.loads((tmp_path / "rec.results.json").read_text())
+    results = read_results(tmp_path / "rec.results.json")
     assert results["agent"]["privileged"] and len(results["units"]) == 2
     frames = sum(sum(u["lengths"]) for u in results["units"])
     assert (tmp_path / "logs" / "rec.results.mcap").exists()
@@ -87,7 +108,8 @@ def test_record_pack_download_round_trip(tmp_path: Path) -> None:
     packed = runner.invoke(app, ["datasets", "pack", str(out), "--name", "rec", "--suite", "narrow-v1", "--policy",
                                  "max-expected", "--out", str(catalog.parent), "--catalog", str(catalog)])
     assert packed.exit_code == 0, packed.output
-    assert json.loads(catalog.read_text())["datasets"][0]["url"] == "rec-1.0.0.tar.gz"  # relative: portable
+    written = json.loads(catalog.read_text())  # a recording of suite pairs: an evaluation recording, never training data
+    assert written["datasets"] == [] and written["evaluation_recordings"][0]["url"] == "rec-1.0.0.tar.gz"  # relative
     got = runner.invoke(app, ["datasets", "download", "rec", "--dir", str(tmp_path / "dl"), "--catalog", str(catalog)])
     assert got.exit_code == 0, got.output
     ds = LeRobotDataset("mewa/rec", root=tmp_path / "dl" / "rec", video_backend="pyav")
@@ -109,8 +131,12 @@ def test_adding_to_a_catalog_keeps_relative_urls(tmp_path: Path) -> None:
             "sha256": "0" * 64}
     add_to_catalog(catalog, {**base, "name": "a", "url": "a-1.0.0.tar.gz"})
     add_to_catalog(catalog, {**base, "name": "b", "url": "b-1.0.0.tar.gz"})
-    assert [e["url"] for e in json.loads(catalog.read_text())["datasets"]] == ["a-1.0.0.tar.gz", "b-1.0.0.tar.gz"]
-    assert load_catalog(catalog)["datasets"][0]["url"] == (tmp_path / "a-1.0.0.tar.gz").as_uri()
+    section = "evaluation_recordings"  # entries that do not say they are training data
+    assert [e["url"] for e in json.loads(catalog.read_text())[section]] == ["a-1.0.0.tar.gz", "b-1.0.0.tar.gz"]
+    assert load_catalog(catalog)[section][0]["url"] == (tmp_path / "a-1.0.0.tar.gz").as_uri()
+    add_to_catalog(catalog, {**base, "name": "a", "url": "a-1.0.0.tar.gz", "kind": "training"})
+    moved = json.loads(catalog.read_text())
+    assert [e["name"] for e in moved["datasets"]] == ["a"] and [e["name"] for e in moved[section]] == ["b"]
 
 
 def test_evaluate_log_option_errors_clearly(tmp_path: Path) -> None:
@@ -159,7 +185,7 @@ def test_a_wheel_carries_the_shipped_catalog_and_its_archives(tmp_path: Path) ->
     import sys
     import zipfile
 
-    from mewa_bench.datasets.catalog import INSTALLED_DATASETS, default_catalog_path
+    from mewa_bench.datasets.catalog import INSTALLED_DATASETS, catalog_entries, default_catalog_path
 
     root = Path(__file__).resolve().parents[1]
     built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp_path / "wheel"),
@@ -174,8 +200,8 @@ def test_a_wheel_carries_the_shipped_catalog_and_its_archives(tmp_path: Path) ->
             target.write_bytes(wheel.read(name))
     path = default_catalog_path(checkout=tmp_path / "no-checkout" / "index.json", prefix=prefix)
     assert path == prefix / INSTALLED_DATASETS / "index.json"
-    shipped = load_catalog(root / "datasets" / "index.json", resolve=False)["datasets"]
-    installed = load_catalog(path)["datasets"]
+    shipped = catalog_entries(load_catalog(root / "datasets" / "index.json", resolve=False))
+    installed = catalog_entries(load_catalog(path))
     assert [e["name"] for e in installed] == [e["name"] for e in shipped]
     for entry in installed:
         archive = Path(entry["url"].removeprefix("file://"))

@@ -11,7 +11,7 @@ from mewa_bench.cli import app
 
 COMMANDS = [["evaluate"], ["record"], ["view"], ["leaderboard"], ["generate"], ["train"], ["info"],
             ["suites", "verify"], ["datasets", "download"], ["datasets", "pack"], ["serve"], ["serve", "token", "create"],
-            ["serve", "worker"], ["submit"], ["status"]]
+            ["serve", "worker"], ["submit"], ["status"], ["compare"]]
 
 
 @pytest.mark.parametrize("command", COMMANDS, ids=" ".join)

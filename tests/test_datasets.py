@@ -300,7 +300,8 @@ def test_catalog_add_replace_and_lookup(tmp_path):
     add_to_catalog(path, {**e1, "policy": "replaced"})
     add_to_catalog(path, {**e1, "version": "10"})
     catalog = load_catalog(path)
-    assert [(e["version"], e["policy"]) for e in catalog["datasets"]] == [("9", "replaced"), ("10", "random")]
+    assert catalog["datasets"] == []  # a dataset without training metadata is never listed as training data
+    assert [(e["version"], e["policy"]) for e in catalog["evaluation_recordings"]] == [("9", "replaced"), ("10", "random")]
     assert dataset_info(catalog, "tiny")["version"] == "10"  # newest: 10 > 9 numerically
     assert dataset_info(catalog, "tiny@9")["policy"] == "replaced"
     with pytest.raises(DatasetError, match="not in the catalog"):

@@ -122,12 +122,13 @@ def test_results_file_is_valid_json_after_every_unit(tmp_path: Path, monkeypatch
     from mewa_bench.protocol import runner
 
     monkeypatch.setattr(runner, "WRITE_INTERVAL", 0.0)  # write after every unit (the default throttles to 1 s)
+    monkeypatch.setattr(runner, "WRITE_SHARE", 1.0)  # (and to a tenth of the run's time)
     seen = []
 
     def progress(done: int, total: int) -> None:
         path = tmp_path / "r.json"
         if path.exists():
-            seen.append(len(json.loads(path.read_text())["units"]))
+            seen.append(len(read_results(path)["units"]))
 
     evaluate(EvalConfig(agent_path=FAULTY, out=tmp_path / "r.json", seeds=(0,), pairs=(0, 1, 2),
                         agent_args={"fault": "none"}), progress=progress)
@@ -139,8 +140,11 @@ def test_malformed_results_file_is_a_clear_error(tmp_path: Path) -> None:
 
     results, path = run(tmp_path, FAULTY, agent_args={"fault": "none"}, seeds=(0,), pairs=(0,))
     results["units"][0] = 5
-    path.write_text(json.dumps(results))
+    path.write_text(json.dumps({**results, "schema_version": 2}))
     with pytest.raises(ResultsError, match=r"r\.json: malformed results"):
+        read_results(path)
+    path.write_text(json.dumps(results))  # schema 3 with its units as a list, not columns
+    with pytest.raises(ResultsError, match=r"r\.json: units must be an object with .* in schema 3, got list"):
         read_results(path)
     path.write_text("{not json")
     with pytest.raises(ResultsError, match=r"r\.json: not valid JSON"):

@@ -12,7 +12,7 @@ import pytest
 
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.leaderboard import LeaderboardReport, build_leaderboards
-from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, write_results
+from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, read_results, write_results
 from mewa_bench.game.normalise import return_bounds
 from mewa_bench.protocol.config import default_seeds, env_seed
 from mewa_bench.protocol.scoring import score_units
@@ -146,7 +146,7 @@ def test_ranking_order_and_privileged_unranked(built) -> None:
 
 def test_csv_numbers_match_results(built, narrow: Suite) -> None:
     _, subs, out = built
-    results = json.loads((subs / "learner" / "results-learner-narrow-v1.json").read_text())
+    results = read_results(subs / "learner" / "results-learner-narrow-v1.json")
     row = next(r for r in read_csv(out / "narrow-v1.csv") if r["agent"] == "learner")
     sc = results["scores"]
     assert float(row["mean_score"]) == pytest.approx(sc["mean"]["mean"], abs=1e-12)
@@ -193,8 +193,8 @@ def test_png_and_html(built) -> None:
     assert 'src="narrow-v1.png"' in page and 'src="wide-v1.png"' in page
     assert "http" not in page and "<script" not in page
     suites = ("narrow-v1", "wide-v1", "narrow-v2", "wide-v2")
-    assert {p.name for p in report.written} == {f"{s}.{ext}" for s in suites for ext in ("md", "csv", "png")} | {
-        "index.html"}
+    assert {p.name for p in report.written} == {f"{s}{ext}" for s in suites
+                                                for ext in (".md", ".csv", ".png", "-algorithms.csv")} | {"index.html"}
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
 
 
@@ -226,6 +226,55 @@ def test_output_is_deterministic(built, tmp_path: Path) -> None:
         assert path.read_bytes() == (out / path.name).read_bytes(), path.name
 
 
+def test_the_board_leads_with_the_algorithms_table_and_rebuilds_it_byte_for_byte(built, tmp_path: Path) -> None:
+    _, subs, out = built
+    md = (out / "narrow-v1.md").read_text()
+    assert md.index("## Algorithms") < md.index("## Checkpoints") < md.index("| 1 | learner |")
+    assert "conditional on that checkpoint" in md and "1 run: no interval over training runs" in md
+    rows = read_csv(out / "narrow-v1-algorithms.csv")
+    assert [(r["rank"], r["algorithm"], r["runs"]) for r in rows] == [("", "oracle", "1"), ("1", "learner", "1"),
+                                                                       ("2", "steady", "1"), ("3", "weak", "1")]
+    again = build_leaderboards(subs, tmp_path / "again")
+    assert (tmp_path / "again" / "narrow-v1-algorithms.csv").read_bytes() == (out / "narrow-v1-algorithms.csv").read_bytes()
+    assert again.written
+
+
+def test_runs_of_one_algorithm_share_a_row_and_no_two_lines_share_colour_and_style(narrow: Suite,
+                                                                                  tmp_path: Path) -> None:
+    from mewa_bench.leaderboard.board import make_board
+    from mewa_bench.leaderboard.plot import curves_figure
+    from mewa_bench.leaderboard.validate import SuiteCache, load_entry
+
+    subs = tmp_path / "submissions"
+    for i in range(3):
+        folder = subs / f"algo-narrow-v1-seed{i}"
+        write_submission(folder, folder.name, 20 + i)
+        (folder / "run.json").write_text(json.dumps({"algorithm": "algo", "seed": i, "suite": "narrow-v1"}))
+        write_results(folder / "results-narrow-v1.json",
+                      make_results(narrow, folder.name, 0.80 + 0.03 * i, 0.02, seed=20 + i))
+    for i in range(11):  # one-run algorithms named after their folders
+        write_submission(subs / f"other{i}", f"other{i}", 40 + i)
+        write_results(subs / f"other{i}" / "results-narrow-v1.json",
+                      make_results(narrow, f"other{i}", 0.5 + 0.01 * i, 0.0, seed=40 + i))
+    report = build_leaderboards(subs, tmp_path / "boards")
+    assert not report.invalid
+    rows = read_csv(tmp_path / "boards" / "narrow-v1-algorithms.csv")
+    algo = next(r for r in rows if r["algorithm"] == "algo")
+    assert algo["runs"] == "3" and algo["note"] == "" and float(algo["mean_score_low"]) < float(algo["mean_score"])
+    assert len(rows) == 12
+    suites = SuiteCache()
+    board = make_board(narrow, [load_entry(p, suites) for p in sorted(subs.glob("*/results-*.json"))], "submissions")
+    lines = curves_figure(board).axes[0].get_lines()
+    styles = [(tuple(np.round(matplotlib_rgba(line.get_color()), 4)), str(line.get_linestyle())) for line in lines]
+    assert len(lines) == 12 + 5 and len(set(styles)) == len(styles)
+
+
+def matplotlib_rgba(color: object) -> tuple[float, ...]:
+    from matplotlib.colors import to_rgba
+
+    return to_rgba(color)
+
+
 def test_committed_leaderboards_are_up_to_date_with_the_submissions(tmp_path: Path) -> None:
     repo = Path(__file__).resolve().parents[1]
     report = build_leaderboards(repo / "submissions", tmp_path)
@@ -235,8 +284,8 @@ def test_committed_leaderboards_are_up_to_date_with_the_submissions(tmp_path: Pa
         assert "bayes-explorer" in names
         if suite.endswith("v1"):
             assert names >= {"random", "random-task-specific", "bayes-adaptive", "oracle-t-optimal"}
-        for ext in ("md", "csv"):
-            assert (tmp_path / f"{suite}.{ext}").read_text() == (repo / "leaderboards" / f"{suite}.{ext}").read_text()
+        for name in (f"{suite}.md", f"{suite}.csv", f"{suite}-algorithms.csv"):
+            assert (tmp_path / name).read_text() == (repo / "leaderboards" / name).read_text()
     assert (tmp_path / "index.html").read_text() == (repo / "leaderboards" / "index.html").read_text()
 
 

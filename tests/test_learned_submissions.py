@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
 
 from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.results import read_results
 from mewa_bench.protocol.runner import evaluate
 
 SUBMISSIONS = Path(__file__).resolve().parents[1] / "submissions"
@@ -18,7 +18,7 @@ SAMPLE_PAIRS, SAMPLE_SEEDS = (0, 1), (0, 1)  # the whole file would take minutes
 @pytest.mark.skipif(not CHECKPOINTED, reason="no learned submissions shipped")
 @pytest.mark.parametrize("results_path", CHECKPOINTED, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_a_shipped_checkpoint_replays_its_committed_units(results_path: Path, tmp_path: Path) -> None:
-    committed = json.loads(results_path.read_text())
+    committed = read_results(results_path)
     config = EvalConfig(agent_path=results_path.parent / "agent.py", suite=committed["suite"]["name"],
                         seeds=SAMPLE_SEEDS, pairs=SAMPLE_PAIRS, agent_args=committed["agent"]["agent_args"],
                         isolated=False, out=tmp_path / "again.json")

@@ -32,6 +32,7 @@ from mewa_bench.logs.mcap_log import HALF_TICK_NS, TICK_NS
 from mewa_bench.logs.rerun_log import recording_id
 from mewa_bench.logs.view import ViewerError
 from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.results import read_results
 from mewa_bench.protocol.runner import EvaluationError, evaluate, run_info
 from mewa_bench.protocol.agent import Transition
 from mewa_bench.protocol.trajectory import EpisodeRecord, RunInfo, StepRecord, UnitRecord
@@ -177,7 +178,7 @@ def healthy(tmp_path_factory) -> dict[str, Any]:
     """One real evaluation (2 units of 10 episodes) logged to MCAP and Rerun."""
     tmp = tmp_path_factory.mktemp("logs")
     sinks = log_sinks(tmp)
-    results = json.loads(run_logged(tmp, {"fault": "none"}, sinks).read_text())
+    results = read_results(run_logged(tmp, {"fault": "none"}, sinks))
     config = EvalConfig(agent_path=AGENT, seeds=(0,), pairs=(0, 1), isolated=False)
     return {"results": results, "mcap": read_mcap(tmp / "run.mcap"), "rrd": tmp / "run.rrd", "sinks": sinks,
             "run": run_info(config, load_suite("narrow-v1"), results)}
@@ -324,7 +325,7 @@ def test_a_failing_agent_leaves_readable_logs_of_the_finished_units(tmp_path):
     sinks = log_sinks(tmp_path)
     with pytest.raises(EvaluationError, match="divided by zero"):
         run_logged(tmp_path, {"fault": "raise", "after_units": "1", "at_step": "2"}, sinks)
-    results = json.loads((tmp_path / "r.json").read_text())
+    results = read_results(tmp_path / "r.json")
     assert [u["pair"] for u in results["units"]] == [0]
     log = read_mcap(tmp_path / "run.mcap")
     assert log["messages"]["/mewa/episode"] == episodes_of(results)
@@ -462,7 +463,7 @@ def test_sinks_close_safely_and_refuse_misuse(tmp_path):
 
 
 def test_units_are_on_disk_before_close(tmp_path):
-    sinks = [McapSink(tmp_path / "w.mcap"), RerunSink(tmp_path / "w.rrd")]
+    sinks = [McapSink(tmp_path / "w.mcap"), RerunSink(tmp_path / "w.rrd", batch_steps=5)]  # one unit is a batch
     for sink in sinks:
         sink.start(synthetic_run())
         sink.add_unit(synthetic_unit())
@@ -595,3 +596,64 @@ def test_resuming_a_finished_run_writes_no_empty_log(tmp_path):
     results, _ = evaluate(config, sinks=sinks)  # nothing left to play
     assert len(results["units"]) == 2
     assert list(again.iterdir()) == []
+
+
+def test_rerun_batches_units_into_few_chunks_with_every_row(tmp_path):
+    units = [synthetic_unit(images=False, pair=p) for p in range(12)]  # 5 steps each
+    path = tmp_path / "b.rrd"
+    with RerunSink(path, batch_steps=20) as sink:  # batches of 4 units (20 steps)
+        sink.start(synthetic_run("vector"))
+        for unit in units:
+            sink.add_unit(unit)
+    verify_rrd(path)
+    chunks: dict[str, int] = {}
+    for chunk in RrdReader(path).stream():
+        if not chunk.is_static and chunk.entity_path.startswith("/mewa/"):
+            chunks[chunk.entity_path] = chunks.get(chunk.entity_path, 0) + 1
+    assert set(chunks) == {"/mewa/reward", "/mewa/return", "/mewa/action", "/mewa/progress", "/mewa/observation",
+                           "/mewa/events", "/mewa/normalised_return", "/mewa/score", "/mewa/episodes"}
+    assert all(n == 3 for n in chunks.values()), chunks  # 3 batches, one chunk per entity and batch
+    steps = [(u.pair, ep.episode, s) for u in units for ep in u.episodes for s in ep.steps]
+    rewards = rrd_rows(path, "/mewa/reward")
+    assert [r["global_step"] for r in rewards] == list(range(len(steps))) == list(range(60))
+    assert [(r["pair"], r["episode"]) for r in rewards] == [(p, k) for p, k, _ in steps]
+    assert [r["Scalars:scalars"][0] for r in rewards] == pytest.approx([s.reward for _, _, s in steps])
+    bars = rrd_rows(path, "/mewa/observation")
+    assert [r["BarChart:values"][0]["buffer"] for r in bars] == [list(s.next_obs) for _, _, s in steps]
+    ends = rrd_rows(path, "/mewa/score")
+    assert [(r["global_step"], r["pair"], r["episode"]) for r in ends] == [
+        (5 * p + end, p, k) for p in range(12) for k, end in ((0, 2), (1, 4))]
+    assert rrd_rows(path, "/mewa/episodes")[-1]["TextLog:text"] == [
+        "pair 11 seed 0 ep 1: return -0.300, normalised 0.500, score 0.750, 2 steps"]
+
+
+def test_a_rerun_log_of_a_real_run_is_a_few_chunks(healthy):
+    per_entity: dict[str, int] = {}
+    for chunk in RrdReader(healthy["rrd"]).stream():
+        if not chunk.is_static:
+            per_entity[chunk.entity_path] = per_entity.get(chunk.entity_path, 0) + 1
+    assert per_entity and max(per_entity.values()) == 1, per_entity  # 2 units, 20 episodes: one batch
+
+
+def test_evaluate_logs_only_the_pairs_and_seeds_asked_for(tmp_path):
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    agent = Path(__file__).resolve().parents[1] / "submissions" / "random" / "agent.py"
+    args = ["evaluate", str(agent), "--in-process", "--pairs", "0,1,2", "--seeds", "3",
+            "--out", str(tmp_path / "r.json"), "--log", "mcap,rerun", "--log-dir", str(tmp_path / "logs")]
+    result = CliRunner().invoke(app, [*args, "--log-pairs", "0,2", "--log-seeds", "1,2"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert len(read_results(tmp_path / "r.json")["units"]) == 9  # every unit scored
+    log = read_mcap(tmp_path / "logs" / "r.mcap")
+    assert sorted((u["pair"], u["seed"]) for u in log["messages"]["/mewa/unit"]) == [(0, 1), (0, 2), (2, 1), (2, 2)]
+    assert json.loads(log["metadata"]["mewa_run"]["logged_pairs"]) == [0, 2]
+    assert json.loads(log["metadata"]["mewa_run"]["logged_seeds"]) == [1, 2]
+    rrd = tmp_path / "logs" / "r.rrd"
+    verify_rrd(rrd)
+    logged = {(r["pair"], r["episode"]) for r in rrd_rows(rrd, "/mewa/score")}
+    assert logged == {(p, k) for p in (0, 2) for k in range(10)}
+    assert len(rrd_rows(rrd, "/mewa/score")) == 40  # 4 units of 10 episodes
+    alone = CliRunner().invoke(app, [*args[:-4], "--log-seeds", "1"], env={"COLUMNS": "200"})
+    assert alone.exit_code == 2 and "--log" in alone.output

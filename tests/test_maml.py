@@ -1,4 +1,4 @@
-"""MAML (issue 12): deterministic training, metrics and checkpoints written as they come, resume, the
+"""MAML: deterministic training, metrics and checkpoints written as they come, resume, the
 inner step's advantages by hand, the evaluation agent adapting after each episode and resetting per
 pair, the train command's submission played under the evaluation protocol, and the learning test:
 on the narrow-v1 meta-train distribution it beats the random task-specific baseline, judged with the
@@ -140,7 +140,7 @@ def beats_random_task_specific(agent, task, workers: np.ndarray, seeds: int) -> 
 
 
 def test_maml_beats_random_task_specific_on_its_training_distribution(tmp_path: Path) -> None:
-    """The issue's learning test: 1 M steps on narrow-v1's meta-train workers (about 2 min on one core);
+    """The learning test: 1 M steps on narrow-v1's meta-train workers (about 2 min on one core);
     on 100 fresh workers from that distribution (4 seeds x 10 episodes each) the agent's mean score is
     above the random task-specific baseline's exact one, the 95% interval clear of it."""
     from mewa_bench.design.suites import load_suite

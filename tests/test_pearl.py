@@ -1,4 +1,4 @@
-"""PEARL (issue 12): deterministic training, metrics and checkpoints written as they come, resume, the
+"""PEARL: deterministic training, metrics and checkpoints written as they come, resume, the
 posterior as a product of Gaussians (checked against sequential Bayesian updates), the replay's
 context prefixes, the temperature moving towards its target, the evaluation agent's posterior
 sampling and reset per pair, the train command's submission played under the evaluation protocol,
@@ -194,7 +194,7 @@ def play_pairs(agent: PEARLAgent, task, workers: np.ndarray, seeds: int) -> np.n
 
 
 def test_pearl_beats_random_task_specific_on_its_training_distribution(tmp_path: Path) -> None:
-    """The issue's learning test: 600 k steps on narrow-v1's meta-train workers (about 2-3 min on one
+    """The learning test: 600 k steps on narrow-v1's meta-train workers (about 2-3 min on one
     core); on 100 fresh workers from that distribution (4 seeds x 10 episodes each) the agent's mean
     score (normalised return / the worker's max-expected baseline) is above the random task-specific
     baseline's exact one, the 95% interval over workers clear of it."""

@@ -140,3 +140,12 @@ def test_train_one_seed_per_ray_task_gives_the_local_runs(tmp_path: Path) -> Non
     assert not all(torch.equal(a, b) for a, b in zip(
         torch.load(tmp_path / "local" / "seed1" / "checkpoint.pt", weights_only=False)["model"].values(),
         torch.load(tmp_path / "local" / "seed2" / "checkpoint.pt", weights_only=False)["model"].values()))
+
+
+def test_a_vector_agent_on_ray_gives_the_one_lane_local_results(tmp_path: Path) -> None:
+    vector = AGENTS / "vector_agent.py"
+    args = {"agent_args": {"sampled": "true"}}
+    on_ray, _ = evaluate(config(tmp_path, "ray.json", agent=vector, ray=LOCAL, **args))
+    local, _ = evaluate(replace(config(tmp_path, "local.json", agent=vector, **args), lanes=1))
+    assert stable_view(on_ray)["units"] == stable_view(local)["units"]
+    assert len(on_ray["units"]) == 12

@@ -1,4 +1,4 @@
-"""RL^2's mechanics (issue 12, in progress): deterministic training, metrics and checkpoints written as
+"""RL^2's mechanics: deterministic training, metrics and checkpoints written as
 they come, resume, GAE by hand, and the checkpoint played under the evaluation protocol. Whether it
 learns the two-worker task is not claimed yet (docs: the issue note)."""
 
@@ -114,7 +114,7 @@ def play_pairs(checkpoint: Path, task, workers: list[tuple[float, ...]], seeds: 
 
 
 def test_rl2_learns_to_adapt_to_two_opposite_workers(tmp_path: Path) -> None:
-    """The issue's learning test: greedy building is perfect for (0,1,1,1) and fails for (1,1,1,0), and
+    """The learning test: greedy building is perfect for (0,1,1,1) and fails for (1,1,1,0), and
     the reverse for parallel building; trained for 4 M steps (about 2 min on one core), RL^2 improves
     from episode 1 to 10 and beats the best fixed t-optimal policy, judged with the exact engine."""
     from mewa_bench.design.exact import expected_returns

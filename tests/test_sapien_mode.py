@@ -106,3 +106,12 @@ def test_evaluate_and_record_in_sapien_mode_write_images_everywhere(tmp_path: Pa
     image = ds[0]["observation.images.top"]
     pixels = np.round(image.numpy().transpose(1, 2, 0) * 255).astype(np.uint8)
     np.testing.assert_array_equal(pixels, start)
+
+
+def test_a_vector_agent_gets_batches_of_images_and_plays_as_in_vector_mode(tmp_path: Path) -> None:
+    vector = Path(__file__).parent / "agents" / "vector_agent.py"  # asserts images [n, H, W, 3] uint8 per batch
+    args = {"agent_path": vector, "seeds": (0, 1), "pairs": (2, 5), "lanes": 4, "agent_args": {"sampled": "true"}}
+    images, _ = evaluate(EvalConfig(out=tmp_path / "sapien.json", mode="sapien", image_size=(32, 32), **args))
+    plain, _ = evaluate(EvalConfig(out=tmp_path / "vector.json", **args))
+    assert images["env"]["mode"] == "sapien" and len(images["units"]) == 4
+    assert images["units"] == plain["units"]

@@ -35,9 +35,19 @@ def test_scores_by_hand() -> None:
 
 
 def test_interquartile_mean_is_the_25_percent_trimmed_mean() -> None:
-    v = np.random.default_rng(0).normal(size=(5, 40))
+    v = np.random.default_rng(0).normal(size=(5, 42))
     np.testing.assert_allclose(interquartile_mean(v), stats.trim_mean(v, 0.25, axis=1))
-    assert interquartile_mean(np.array([1.0, 2.0, 3.0, 4.0, 100.0])) == pytest.approx((0.75 * 2 + 3 + 0.75 * 4) / 2.5)
+    assert interquartile_mean(np.array([1.0, 2.0, 3.0, 4.0, 100.0])) == 3.0  # floor(5 / 4) = 1 cut at each end
+
+
+def test_a_runs_iqm_is_rliables_over_its_pair_means(narrow: Suite) -> None:
+    rliable = pytest.importorskip("rliable.metrics")
+    units, _ = _synthetic_units(narrow, [0, 3, 5, 8, 9, 13], 4, np.random.default_rng(8))
+    scores = score_units(narrow, units, 0.5, samples=50)
+    assert scores.pair_curves.shape == (6, K) and scores.pairs == (0, 3, 5, 8, 9, 13)
+    assert scores.iqm.mean == rliable.aggregate_iqm(scores.pair_curves.mean(axis=1)[None, :])
+    assert scores.mean.mean == pytest.approx(scores.pair_curves.mean(), abs=1e-12)
+    assert scores.seeds_per_pair == 4 and "4 seed(s) per pair" in scores.warning
 
 
 def test_stratified_resamples_stay_within_their_pair() -> None:

@@ -19,6 +19,7 @@ from service_harness import (AGENTS, BACKENDS, CLI, RANDOM_AGENT, Server, databa
 from mewa_bench.design.suites import load_suite, shipped_path
 from mewa_bench.files import json_text
 from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.results import read_results, results_text
 from mewa_bench.protocol.runner import evaluate
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -55,7 +56,7 @@ def evaluated(tmp_path_factory) -> tuple[dict, bytes]:
     out = tmp_path_factory.mktemp("evaluated") / "random-narrow-v1.json"
     subprocess.run([*CLI, "evaluate", str(RANDOM_AGENT), "--seeds", "2",
                     "--out", str(out)], check=True, capture_output=True, timeout=300)
-    return json.loads(out.read_text()), out.read_bytes()
+    return read_results(out), out.read_bytes()  # the file is schema 3: its units as columns
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +80,7 @@ def variant(results: dict, name: str, change=lambda r: None) -> bytes:
     other = copy.deepcopy(results)
     other["agent"]["name"] = name
     change(other)
-    return json_text(other).encode()
+    return json_text({**other, "schema_version": 2}).encode()  # schema 2: the units as a JSON list
 
 
 def test_api_describes_itself(server) -> None:
@@ -89,7 +90,44 @@ def test_api_describes_itself(server) -> None:
                  "/api/submissions/results", "/api/submissions/agent", "/api/submissions/{submission_id}"):
         assert path in paths, path
     health = get(server, "/api/health").json()
-    assert health["schema"] == "0002" and health["database"] == server.backend
+    assert health["schema"] == "0003" and health["database"] == server.backend
+    assert health["uploads_ranked"] is False and "sandbox" in health["sandbox_limits"]
+    docs = get(server, "/docs")  # offline: no CDN, no script, every operation listed
+    assert docs.status_code == 200 and "<script" not in docs.text and "cdn" not in docs.text.lower()
+    assert 'data-path="/api/submissions/agent" data-method="post"' in docs.text
+
+
+SECURITY = {"x-frame-options": "DENY", "x-content-type-options": "nosniff", "referrer-policy": "no-referrer"}
+
+
+def test_every_answer_has_the_security_headers(server, token) -> None:
+    answers = [get(server, "/"), get(server, "/docs"), get(server, "/api/health"), get(server, "/leaderboards/narrow-v1"),
+               get(server, "/no/such/page"), get(server, "/api/submissions/99999"),
+               post_results(server, token, b"{" * 10)]
+    for answer in answers:
+        assert {k: answer.headers.get(k) for k in SECURITY} == SECURITY, (answer.request.url, answer.headers)
+        policy = answer.headers["content-security-policy"]
+        assert "default-src 'none'" in policy and "frame-ancestors 'none'" in policy
+
+
+@pytest.mark.parametrize("path", ["/api/submissions/100000000000000000000000", "/api/submissions/-1",
+                                  "/api/submissions/0", "/submissions/100000000000000000000000",
+                                  "/api/submissions/9223372036854775808"])
+def test_ids_out_of_range_are_a_json_400(server, path) -> None:
+    answer = get(server, path)
+    assert answer.status_code == 400 and answer.headers["content-type"] == "application/json", answer.text
+    assert answer.json()["error"] == "invalid_request" and "submission_id" in answer.json()["detail"]
+
+
+@pytest.mark.parametrize("body, detail", [
+    (b"[" * 100_000 + b"]" * 100_000, "nests arrays and objects more than 32 deep"),
+    (b'{"agent": {"name": "x"}, "seeds": [100000000000000000000000]}', "the integer 100000000000000000000000 is out"),
+    (b'{"n": ' + b"9" * 5000 + b"}", "is out of range"),
+])
+def test_hostile_json_is_a_json_400(server, token, body, detail) -> None:
+    answer = post_results(server, token, body)
+    assert answer.status_code == 400 and answer.json()["error"] == "invalid_json", answer.text
+    assert detail in answer.json()["detail"]
 
 
 def test_suites_list_download_and_hash(server) -> None:
@@ -170,10 +208,22 @@ def test_malformed_results_are_rejected_with_reasons(server, token, evaluated, n
     assert answer.json()["error"] == error and detail in answer.json()["detail"], answer.json()
 
 
+def test_tampered_unit_columns_are_rejected(server, token, evaluated) -> None:
+    raw = json.loads(evaluated[1])  # the schema-3 file as written: its units as columns
+    column = raw["units"]["columns"]["returns"]
+    text = column["xz_base64"]
+    middle = len(text) // 2
+    column["xz_base64"] = text[:middle] + ("A" if text[middle] != "A" else "B") + text[middle + 1:]
+    answer = post_results(server, token, json_text({**raw, "agent": {**raw["agent"], "name": "bad-columns"}}).encode())
+    assert answer.status_code == 422 and answer.json()["error"] == "invalid_results", answer.text
+    assert "units column returns: the xz data is corrupt" in answer.json()["detail"], answer.json()
+
+
 def test_broken_and_oversized_uploads_are_rejected(server, token, evaluated) -> None:
     cases = [
         (b"{not json", 400, "invalid_json", "not valid JSON"),
-        (json_text(evaluated[0]).encode().replace(b'"returns": [\n', b'"returns": [\n   NaN,\n', 1), 400,
+        (json_text({**evaluated[0], "schema_version": 2}).encode().replace(b'"returns": [\n',
+                                                                            b'"returns": [\n   NaN,\n', 1), 400,
          "invalid_json", "NaN is not a JSON number"),
         (b"", 400, "empty_upload", "is empty"),
         (b" " * (MAX_RESULTS_MB * 2**20 + 100), 413, "too_large", "limit of 1,048,576 bytes"),
@@ -232,7 +282,7 @@ def _relength(r: dict) -> None:
 
 def test_replayed_uploads_are_rejected(server, token, runs) -> None:
     run = runs("replayed")
-    data = json_text(run).encode()
+    data = results_text(run).encode()
     first = post_results(server, token, data)
     assert first.status_code == 202
     for copy_of_it in (data, variant(run, "replayed", _retime), variant(run, "another-name"),
@@ -243,7 +293,7 @@ def test_replayed_uploads_are_rejected(server, token, runs) -> None:
         assert f"submission {first.json()['id']}" in again.json()["detail"]
     assert wait_status(server, first.json()["id"])["status"] == "done"
     assert sum(1 for s in table_rows(server, "submissions") if s["agent_name"] in ("replayed", "another-name")) == 1
-    other = post_results(server, token, json_text(runs("not-a-replay")).encode())  # other episodes: another run
+    other = post_results(server, token, results_text(runs("not-a-replay")).encode())  # other episodes: another run
     assert other.status_code == 202, other.text
 
 
@@ -253,10 +303,10 @@ def test_a_rejected_upload_does_not_block_the_genuine_run(server, token, runs) -
     first = post_results(server, token, tampered)
     assert first.status_code == 202, first.text
     assert wait_status(server, first.json()["id"])["status"] == "rejected"
-    genuine = post_results(server, token, json_text(run).encode())
+    genuine = post_results(server, token, results_text(run).encode())
     assert genuine.status_code == 202, genuine.text
     assert wait_status(server, genuine.json()["id"])["status"] == "done"
-    assert post_results(server, token, json_text(run).encode()).json()["error"] == "replayed"
+    assert post_results(server, token, results_text(run).encode()).json()["error"] == "replayed"
 
 
 def _widen_intervals(r: dict) -> None:
@@ -292,7 +342,7 @@ def test_the_board_keeps_the_servers_scores_not_the_submitted_intervals(server, 
 
 
 def test_tokens_are_required_and_stored_hashed(server, token, runs) -> None:
-    data = json_text(runs("tokens")).encode()
+    data = results_text(runs("tokens")).encode()
     assert post_results(server, None, data).json()["error"] == "missing_token"
     wrong = post_results(server, "mewa_not-a-token", data)
     assert wrong.status_code == 401 and wrong.json()["error"] == "invalid_token"
@@ -313,8 +363,8 @@ def test_rate_limit_and_daily_quota_per_token(server, runs) -> None:
     limited = post_results(server, hasty, b"{}")
     assert limited.json()["error"] == "rate_limited" and int(limited.headers["retry-after"]) >= 1
     frugal = server.token("frugal", daily_results=1)
-    assert post_results(server, frugal, json_text(runs("quota-1")).encode()).status_code == 202
-    over = post_results(server, frugal, json_text(runs("quota-2")).encode())
+    assert post_results(server, frugal, results_text(runs("quota-1")).encode()).status_code == 202
+    over = post_results(server, frugal, results_text(runs("quota-2")).encode())
     assert over.status_code == 429 and over.json()["error"] == "quota_exceeded"
     assert "daily quota of 1 results submissions" in over.json()["detail"]
 
@@ -348,7 +398,7 @@ def test_daily_agent_quota_per_token(server) -> None:
 
 def test_cli_submit_and_status(server, token, runs, tmp_path) -> None:
     path = tmp_path / "results.json"
-    path.write_bytes(json_text(runs("from-the-cli")).encode())
+    path.write_bytes(results_text(runs("from-the-cli")).encode())
     cli = CLI
     submitted = subprocess.run([*cli, "submit", str(path), "--server", server.url, "--token", token, "--wait",
                                 "--timeout", "120"], capture_output=True, text=True, timeout=300,

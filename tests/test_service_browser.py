@@ -10,7 +10,6 @@ MEWA_REQUIRE_BROWSER=1 (CI), where they fail.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -22,8 +21,7 @@ import pytest
 from service_harness import CLI, RANDOM_AGENT, REPO, Server, get, post_agent, post_results, wait_status
 
 from mewa_bench.design.suites import load_suite
-from mewa_bench.files import json_text
-from mewa_bench.protocol.results import finish
+from mewa_bench.protocol.results import finish, read_results, results_text
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 CHROMIUM = Path(os.environ.get("MEWA_CHROMIUM", "/usr/bin/chromium"))
@@ -32,6 +30,7 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic
                   "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 ARTIFACTS = Path(os.environ.get("MEWA_TEST_ARTIFACTS", REPO / "test-artifacts"))
 SEEDS = 2
+SCREEN_WIDTH = 1280  # the pages must be usable on a laptop's screen: no table running off it
 PAGE_TIMEOUT_MS = 90_000
 # markup for the page, and "$$" that matplotlib would parse as math in the figure's legend
 FIGURE_LOADED = "() => { const i = document.querySelector('img#curves'); return i.complete && i.naturalWidth > 0 }"
@@ -41,7 +40,7 @@ HOSTILE_NAME = '<img src="x" onerror="document.title=\'injected\'"> $$'
 def shipped_results(agent: str, name: str | None = None) -> dict[str, Any]:
     """A shipped narrow-v1 results file cut to seeds 0..SEEDS-1 and scored again; renamed if `name` (still
     the same run for the server's replay check: each shipped agent's file can be uploaded once)."""
-    results = json.loads((REPO / "submissions" / agent / "results-narrow-v1.json").read_text())
+    results = read_results(REPO / "submissions" / agent / "results-narrow-v1.json")
     results["units"] = [u for u in results["units"] if u["seed"] < SEEDS]
     results["seeds"] = list(range(SEEDS))
     finish(results, load_suite("narrow-v1"))
@@ -66,7 +65,7 @@ def browser() -> Iterator[Any]:
     with sync_playwright() as playwright, tempfile.TemporaryDirectory(prefix="mewa-chromium-") as profile:
         context = playwright.chromium.launch_persistent_context(
             profile, executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_FLAGS,
-            viewport={"width": 1400, "height": 900})
+            viewport={"width": SCREEN_WIDTH, "height": 900})
         context.set_default_timeout(PAGE_TIMEOUT_MS)
         yield context
         context.close()
@@ -75,7 +74,8 @@ def browser() -> Iterator[Any]:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory) -> Iterator[Server]:
     """A server without workers of its own: submissions stay queued until the `worker` fixture starts one."""
-    running = Server(tmp_path_factory.mktemp("browser") / "data", None, "--seeds", str(SEEDS), "--workers", "0").start()
+    running = Server(tmp_path_factory.mktemp("browser") / "data", None, "--seeds", str(SEEDS), "--workers", "0",
+                     "--rank-uploads").start()  # uploads ranked: the ranking below has several agents
     yield running
     running.stop()
 
@@ -115,7 +115,7 @@ def screenshot(page: Any, name: str) -> Path:
 
 
 def submit(server: Server, token: str, results: dict[str, Any]) -> int:
-    answer = post_results(server, token, json_text(results).encode())
+    answer = post_results(server, token, results_text(results).encode())
     assert answer.status_code == 202, answer.text
     return answer.json()["id"]
 
@@ -170,6 +170,8 @@ def test_leaderboard_page_shows_the_api_ranking_and_the_figure(page, server, tok
         row = rows.nth(i)
         cells = row.locator("td").all_inner_texts()
         assert row.get_attribute("data-kind") == expected["kind"]
+        assert row.get_attribute("data-source") == expected["source"] == \
+            ("reference" if expected["kind"] == "reference" else "self-reported")
         assert float(row.get_attribute("data-mean")) == expected["mean"]
         rank = {"agent": str(expected["rank"]), "privileged": "—", "reference": ""}[expected["kind"]]
         assert cells[column["rank"]] == rank
@@ -188,6 +190,8 @@ def test_leaderboard_page_shows_the_api_ranking_and_the_figure(page, server, tok
     assert oracle.get_attribute("data-kind") == "privileged" and oracle.get_attribute("data-rank") == ""
 
     assert page.locator('img[src="x"]').count() == 0 and page.title() != "injected"  # the hostile name stayed text
+    assert page.evaluate("document.documentElement.scrollWidth") <= SCREEN_WIDTH  # nothing runs off the screen
+    assert page.locator("#ranking").evaluate("t => t.getBoundingClientRect().right") <= SCREEN_WIDTH
     figure = page.locator("img#curves")
     page.wait_for_function(FIGURE_LOADED)
     assert figure.evaluate("i => i.naturalWidth") > 600 and figure.evaluate("i => i.naturalHeight") > 300
@@ -259,5 +263,7 @@ def test_an_agent_on_the_public_and_the_hidden_board(page, server, token, worker
     ours = next(r for r in board["rows"] if r["submission_id"] == submission)
     assert row.get_attribute("data-rank") == str(ours["rank"]) == "1" and "random-agent" in row.inner_text()
     assert float(row.get_attribute("data-mean")) == ours["mean"] == status["scores"]["narrow-v1-hidden"]["mean"]["mean"]
+    assert row.get_attribute("data-source") == ours["source"] == "server-evaluated"
+    assert page.evaluate("document.documentElement.scrollWidth") <= SCREEN_WIDTH  # the table fits the screen
     page.wait_for_function(FIGURE_LOADED)
     screenshot(page, "service-leaderboard-narrow-v1-hidden.png")

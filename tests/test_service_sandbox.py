@@ -318,15 +318,73 @@ def test_a_killed_evaluation_resumes_from_its_finished_units_to_the_uninterrupte
     assert stable_view(resumed) == stable_view(reference)
 
 
-def test_the_wall_clock_limit_stops_a_run_that_keeps_its_units(sandbox, tmp_path):
-    (tmp_path / "scratch").mkdir()
-    (tmp_path / "scratch" / "pace").write_text("0.0002")
-    with pytest.raises(SandboxViolation) as caught:
-        run(tmp_path, "paced_agent.py", seeds=(0, 1, 2, 3), pairs=(0, 1, 2, 3), lanes=2,
-            limits=SandboxLimits(wall_seconds=0.5))
+def test_the_wall_clock_limit_stops_a_run_mid_call(sandbox, tmp_path):
+    started = time.monotonic()
+    with pytest.raises(SandboxViolation) as caught:  # one call that hangs within its own (long) per-call limit
+        run(tmp_path, "faulty_agent.py", agent_args={"fault": "hang"}, limits=SandboxLimits(wall_seconds=4,
+                                                                                           call_seconds=300))
     assert caught.value.rule == "wall_time"
-    assert re.search(r"ran past its time limit of 0.5 s with \d+ of 16 units done", str(caught.value))
-    assert len(read_results(tmp_path / "results.json")["units"]) >= 1
+    assert re.search(r"the evaluation ran past its wall-clock limit of 4 s; the sandbox was stopped mid-call after "
+                     r"[\d.]+ s \(0 of 1 units were done", str(caught.value))
+    assert time.monotonic() - started < 30  # long before the call's own limit
+    assert wait_until_gone(tmp_path / "scratch") == []
+
+
+def test_the_scratch_directory_is_capped_as_a_whole(sandbox, tmp_path):
+    with pytest.raises(SandboxViolation) as caught:  # each file is within the file-size limit, together they are not
+        run(tmp_path, "file_agent.py", agent_args={"path": "big.bin", "mode": "write", "size": str(3 << 20),
+                                                   "copies": "40"},
+            limits=SandboxLimits(scratch_bytes=16 << 20, file_bytes=4 << 20))
+    assert caught.value.rule == "scratch_size"
+    assert "the agent's scratch directory grew past its limit of 16,777,216 bytes" in str(caught.value)
+    assert wait_until_gone(tmp_path / "scratch") == []
+
+
+def test_forked_children_share_one_memory_limit(sandbox, tmp_path):
+    from mewa_bench.service.cgroups import cgroup_support
+
+    if cgroup_support().version == 0:  # CI runs as root with cgroups: there it must run
+        if os.environ.get("MEWA_REQUIRE_SANDBOX", "").strip() not in ("", "0"):
+            pytest.fail(f"MEWA_REQUIRE_SANDBOX is set but {cgroup_support().describe()}")
+        pytest.skip(f"no control groups here: {cgroup_support().describe()}")
+    with pytest.raises(SandboxViolation) as caught:  # 3 x 600 MB, each below the per-process limit of 1 GiB
+        run(tmp_path, "memory_children_agent.py", limits=SandboxLimits(memory_bytes=1 << 30, call_seconds=120))
+    assert caught.value.rule == "memory"
+    assert "the sandbox's processes together reached its memory limit of 1 GiB" in str(caught.value)
+    assert wait_until_gone(tmp_path / "scratch") == []
+
+
+PLANTED = "raise SystemExit('a module planted by the agent was imported: ' + __name__)\n"
+
+
+def test_modules_planted_where_the_agent_writes_are_never_imported(sandbox, tmp_path):
+    agent_dir = tmp_path / "submission"
+    agent_dir.mkdir()
+    (agent_dir / "agent.py").write_text((AGENTS / "import_probe_agent.py").read_text())
+    scratch = tmp_path / "scratch"
+    first = sandboxed_evaluate(agent_dir / "agent.py", "narrow-v1", tmp_path / "first.json", scratch=scratch,
+                               seeds=(0,), pairs=(0,))
+    seen = json.loads((scratch / "imports.json").read_text())
+    names = {name.partition(".")[0] for name in seen["modules"]} | {"sitecustomize", "usercustomize"}
+    assert {"resource", "json", "ctypes", "numpy", "gymnasium", "mewa_bench", "encodings"} <= names
+    for place in (scratch, agent_dir):  # what a retried attempt would find if scratch were kept, and the agent's dir
+        for name in names - {"agent"}:
+            (place / f"{name}.py").write_text(PLANTED)
+        (place / "mewa_bench").mkdir()
+        (place / "mewa_bench" / "__init__.py").write_text(PLANTED)
+    (scratch / "imports.json").unlink()
+    second = sandboxed_evaluate(agent_dir / "agent.py", "narrow-v1", tmp_path / "second.json", scratch=scratch,
+                                seeds=(0,), pairs=(0,))
+    assert stable_view(second) == stable_view(first)  # the planted modules changed nothing
+    again = json.loads((scratch / "imports.json").read_text())
+    assert again["modules"] == seen["modules"]  # the same modules from the same files
+    files = [f for f in again["modules"].values() if f]
+    assert not [f for f in files if Path(f).is_relative_to(scratch) or Path(f).is_relative_to(tmp_path)
+                and Path(f) != agent_dir / "agent.py"]
+    assert all((Path(p).is_absolute() or p.endswith(".__path_hook__")) and not Path(p).is_relative_to(tmp_path)
+               for p in again["path"]), again["path"]  # no current directory, nothing the agent may write
+    assert again["flags"] == {"isolated": 1, "dont_write_bytecode": 1, "no_user_site": 1, "safe_path": True,
+                              "ignore_environment": 1}
 
 
 # -- hidden suites ----------------------------------------------------------------------------------------
@@ -397,3 +455,35 @@ def test_candidate_restriction_is_seeded_by_the_task_and_keeps_the_order() -> No
     assert np.array_equal(allowed_candidates(renamed, grid, restricted), chosen)
     assert not np.array_equal(allowed_candidates(task, grid, dataclasses.replace(restricted, seed=8)), chosen)
     assert np.array_equal(allowed_candidates(task, grid, spec), grid)  # the public suites keep every candidate
+
+
+# -- control groups ---------------------------------------------------------------------------------------
+
+def test_a_cgroup_v2_group_gets_its_limits_and_its_first_process(tmp_path):
+    from mewa_bench.service.cgroups import Group, _own_group
+
+    parent = tmp_path / (_own_group("") or "/").lstrip("/")  # a v2 hierarchy laid out as files, where we sit in it
+    parent.mkdir(parents=True, exist_ok=True)
+    (tmp_path / "cgroup.controllers").write_text("cpu memory pids\n")
+    (parent / "cgroup.controllers").write_text("cpu memory pids\n")
+    (parent / "cgroup.subtree_control").write_text("cpu\n")
+    group = Group.make(tmp_path, 2, (512 << 20, 16))
+    (directory,) = group.directories
+    assert directory.parent == parent and directory.name.startswith("mewa-sandbox-")
+    assert (directory / "memory.max").read_text() == str(512 << 20) and (directory / "pids.max").read_text() == "16"
+    assert (parent / "cgroup.subtree_control").read_text() in ("+memory", "+pids")  # both were enabled in turn
+    joined = subprocess.run([*group.join_prefix(), "/bin/sh", "-c", "echo $$"], capture_output=True, text=True,
+                            check=True)
+    assert (directory / "cgroup.procs").read_text().split() == joined.stdout.split()  # it joined, then exec'd
+    (directory / "cgroup.procs").write_text("")
+    (directory / "memory.events").write_text("low 0\nhigh 0\nmax 3\noom 1\noom_kill 1\n")
+    assert group.oom_kills() == 1 and group.pids() == set()
+
+
+def test_the_fallback_says_what_it_does_not_hold(tmp_path):
+    from mewa_bench.service.cgroups import cgroup_support
+
+    support = cgroup_support(tmp_path)  # no cgroup mount there at all
+    assert support.version == 0 or os.geteuid() != 0
+    assert support.describe().startswith("no cgroup (")
+    assert "not the memory of the sandbox's processes together" in support.describe()

@@ -1,4 +1,4 @@
-"""Suites v2 (issue 11): two worker families, gap-maximising curation, a meta-train mixture that covers the test region.
+"""Suites v2: two worker families, gap-maximising curation, a meta-train mixture that covers the test region.
 
 Expectations are derived by hand here (boxes, monotone orders, grid, greedy optimality of every
 phase-2 pick), not through the generator's own helpers, wherever that is possible.

@@ -125,16 +125,16 @@ def test_a_submission_folder_plays_its_checkpoint_with_the_algorithm_class(tmp_p
     out = Path("runs/x")
     out.mkdir(parents=True)
     written = write_submission(out, "mewa-bench train varibad --seed 3", Toy(seed=3), "varibad", "VariBAD",
-                               "VariBADAgent", "VariBAD, one line.")
+                               "VariBADVectorAgent", "VariBAD, one line.")
     agent_text, readme = (p.read_text() for p in written)
-    assert "from mewa_bench.agents.varibad import VariBADAgent" in agent_text
+    assert "from mewa_bench.agents.varibad import VariBADVectorAgent" in agent_text
     assert "mewa-bench evaluate runs/x/agent.py --suite narrow-v1" in agent_text and str(tmp_path) not in agent_text
     assert readme.startswith("# varibad (narrow-v1, seed 3)\n\nVariBAD, one line.")
     assert "```\nmewa-bench train varibad --seed 3\n```" in readme
     spec = importlib.util.spec_from_file_location("submitted", written[0])
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    assert module.PRIVILEGED is False and callable(module.make_agent)
+    assert module.PRIVILEGED is False and callable(module.make_vector_agent)
 
 
 def test_importing_the_shared_layer_does_not_import_torch() -> None:

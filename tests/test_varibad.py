@@ -1,4 +1,4 @@
-"""VariBAD (issue 12): the ELBO's pieces by hand, whole meta-episodes kept for the VAE, the policy's
+"""VariBAD: the ELBO's pieces by hand, whole meta-episodes kept for the VAE, the policy's
 loss kept out of the encoder, deterministic training with metrics and checkpoints written as they
 come, resume, the checkpoint played under the evaluation protocol, the train command, and the
 issue's learning test on two opposite workers judged with the exact engine."""
@@ -235,7 +235,7 @@ def test_the_train_command_makes_a_submission_folder(tmp_path: Path) -> None:
     assert list(entropy) == pytest.approx([float(r["entropy"]) for r in written])
     assert imread(out / "training_curve.png").shape[2] in (3, 4)
     assert "mewa-bench train varibad --suite narrow-v1 --seed 1 --steps 16384" in (out / "README.md").read_text()
-    assert "VariBADAgent" in (out / "agent.py").read_text()
+    assert "VariBADVectorAgent" in (out / "agent.py").read_text()
     results, _ = evaluate(EvalConfig(agent_path=out / "agent.py", out=tmp_path / "r.json", seeds=(0,), pairs=(0,)))
     assert len(results["units"]) == 1 and results["agent"]["name"] == "varibad-run"
     unknown = CliRunner().invoke(app, ["train", "dqn", "--steps", "10", "--out", str(tmp_path / "m")])
@@ -287,7 +287,7 @@ LEARNING = {"total_steps": 4_000_000, "num_envs": 128, "num_steps": 64, "update_
 
 
 def test_varibad_learns_to_adapt_to_two_opposite_workers(tmp_path: Path) -> None:
-    """The issue's learning test: greedy building is perfect for (0,1,1,1) and fails for (1,1,1,0), and
+    """The learning test: greedy building is perfect for (0,1,1,1) and fails for (1,1,1,0), and
     the reverse for parallel building; trained on them, VariBAD improves from episode 1 to 10 and beats
     the best fixed t-optimal policy, judged with the exact engine."""
     from mewa_bench.design.exact import expected_returns

@@ -1,4 +1,4 @@
-"""Agent building blocks: what the shipped reference agents share, and the learned baselines (issue 12).
+"""Agent building blocks: what the shipped reference agents share, and the learned baselines.
 
 Learned baselines: one file per algorithm (`rl2`, `varibad`, `pearl`, `maml`), registered in
 `training_io.ALGORITHMS`, which also holds what they truly share (the meta-train env, metrics and

@@ -27,7 +27,7 @@ outer PPO update, checkpoints, and `MAMLAgent`, which plays a checkpoint under t
   undiscounted sum is the episode return, an affine function of the normalised return scored).
 - Deterministic for a given seed on one machine (explicit generators, one thread).
 
-Status (issue 12): `mewa-bench train maml` runs it, about 10k env steps/s end to end on one core of
+`mewa-bench train maml` runs it, about 10k env steps/s end to end on one core of
 a busy machine (benchmarks/training.py). Learning test (tests/test_maml.py): 1 M steps on narrow-v1's
 meta-train workers; on 100 fresh meta-train workers its mean score is 0.9885 against the random
 task-specific baseline's exact 0.9778 (+0.0107 +- 0.0018), and it does not adapt (s_10 - s_1 about
@@ -45,11 +45,13 @@ from typing import Any
 
 import numpy as np
 
+from mewa_bench.agents.lanes import LaneGenerators, LaneSteps, pick_actions, truthy
+from mewa_bench.protocol.agent import SingleLane, state_vector
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, keep_metrics_until,
                                            load_checkpoint, make_meta_env, mean_or_nan, save_checkpoint,
                                            settings_with, torch_module, write_submission)
 
-__all__ = ["CHECKPOINT", "METRICS", "MAMLAgent", "Settings", "make_agent", "settings_from", "train", "train_job",
+__all__ = ["CHECKPOINT", "METRICS", "MAMLAgent", "MAMLVectorAgent", "Settings", "make_agent", "settings_from", "train", "train_job",
            "train_run"]
 
 OBS_SIZE = 18
@@ -119,7 +121,7 @@ def make_model(settings: Settings) -> Any:
 
         def value(self, obs: Any, k: Any) -> Any:
             """V(s, k) for observations [..., 18] and inner-episode indices k [...]."""
-            onehot = torch.nn.functional.one_hot(k.clamp(max=settings.episodes - 1), settings.episodes).float()
+            onehot = torch.nn.functional.one_hot(k.clamp(max=settings.episodes - 1), settings.episodes).to(obs.dtype)
             return self.critic(torch.cat([obs / OBS_SCALE, onehot], dim=-1)).squeeze(-1)
 
     return MAMLModel()
@@ -146,9 +148,9 @@ def episode_advantages(rewards: Any, values: Any, mask: Any, lam: float) -> Any:
     torch = _torch()
     following = torch.nn.functional.pad(values[:, 1:] * mask[:, 1:], (0, 1))
     delta = (rewards + following - values) * mask
-    steps = torch.arange(rewards.shape[1], dtype=torch.float32)
+    steps = torch.arange(rewards.shape[1], dtype=rewards.dtype)
     gap = steps.unsqueeze(0) - steps.unsqueeze(1)  # [t, u] = u - t
-    decay = torch.where(gap >= 0, lam ** gap.clamp(min=0), torch.zeros(()))
+    decay = torch.where(gap >= 0, lam ** gap.clamp(min=0), torch.zeros((), dtype=rewards.dtype))
     return delta @ decay.T
 
 def inner_gradients(model: Any, grads: list[Any], obs: Any, actions: Any, rewards: Any, mask: Any, k: Any,
@@ -340,12 +342,16 @@ def outer_update(model: Any, optimizer: Any, settings: Settings, episodes: list[
             "inner_lr": round(float(model.log_lr.detach().exp().mean()), 6)}
 
 
-class MAMLAgent:
-    """Plays a MAML checkpoint under the evaluation protocol (SPEC section 6): theta_0 on a pair's first
-    episode, one inner policy-gradient step on its own trajectory after each episode (`end_episode`),
-    back to theta_0 when a new pair begins (`reset_task`)."""
+class MAMLVectorAgent:
+    """Plays a MAML checkpoint on many lanes at once under the evaluation protocol (SPEC section 6): per lane
+    theta_0 on a pair's first episode, one inner policy-gradient step on its own trajectory after each
+    episode, back to theta_0 when a new pair begins. The lanes' adapted weights are stacked ([lanes,
+    ...], as in training) so one batched pass acts for all lanes, and the inner steps of the lanes
+    that end an episode together are one backward pass: the gradient of their summed objectives with
+    respect to each lane's own weights is that lane's own gradient."""
 
-    def __init__(self, checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> None:
+    def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
+                 greedy: bool | str = False) -> None:
         torch = _torch()
 
         torch.set_num_threads(1)
@@ -353,54 +359,73 @@ class MAMLAgent:
         self.settings = Settings(**state["settings"])
         self.model = make_model(self.settings)
         self.model.load_state_dict(state["model"])
-        self.model.eval()
-        self.seed = int(seed)
-        self.greedy = str(greedy).lower() in ("true", "1", "yes")
-        self.reset_task()
-
-    def reset_task(self, seed: int | None = None) -> None:
-        """A new pair: theta_0 again, no episode played."""
-        self.rng = np.random.default_rng([self.seed] if seed is None else [self.seed, seed])
-        self.grads = zero_grads(self.model, 1)
-        self.episode = 0
-        self.steps: list[tuple[np.ndarray, int, float]] = []
-        with _torch().no_grad():
-            self._params = self.model.adapted(self.grads)
-
-    def act(self, observation: Any) -> int:
-        """The adapted policy's action (sampled with the agent's own generator, or the most likely with greedy=true)."""
-        from mewa_bench.protocol.agent import state_vector
-
-        torch = _torch()
+        self.model.double().eval()
+        self.greedy = truthy(greedy)
+        self.generators = LaneGenerators(int(seed), int(num_lanes))
+        self.steps = LaneSteps(int(num_lanes), OBS_SIZE)
+        self.episode = np.zeros(int(num_lanes), dtype=np.int64)
+        self.grads = [g.double() for g in zero_grads(self.model, int(num_lanes))]
         with torch.no_grad():
-            logits = policy_logits(self._params, torch.as_tensor(state_vector(observation))[None, None])[0, 0]
-        probs = torch.softmax(logits, dim=0).double().numpy()
-        return int(np.argmax(probs)) if self.greedy else int(self.rng.choice(ACTIONS, p=probs / probs.sum()))
+            self.params = self.model.adapted(self.grads)
 
-    def observe(self, transition: Any) -> None:
-        """Keep the step for the inner update at the episode's end."""
-        from mewa_bench.protocol.agent import state_vector
+    def reset_task(self, lanes: np.ndarray, seeds: np.ndarray) -> None:
+        """New pairs: theta_0 again, no episode played."""
+        self.generators.reset(lanes, seeds)
+        self.steps.clear(lanes)
+        self.episode[lanes] = 0
+        for g in self.grads:
+            g[lanes] = 0.0
+        self._adapt(lanes)
 
-        self.steps.append((state_vector(transition.obs), int(transition.action), float(transition.reward)))
-
-    def end_episode(self) -> None:
-        """The inner step on the episode just played."""
+    def act(self, lanes: np.ndarray, observations: Any) -> np.ndarray:
+        """Each lane's adapted policy's action (sampled with the lane's generator, or the most likely if greedy)."""
         torch = _torch()
-        if self.steps:
-            obs = torch.as_tensor(np.stack([s[0] for s in self.steps]))[None]
-            actions = torch.tensor([[s[1] for s in self.steps]])
-            rewards = torch.tensor([[s[2] for s in self.steps]], dtype=torch.float32) * self.settings.reward_scale
-            step = inner_gradients(self.model, self.grads, obs, actions, rewards, torch.ones_like(rewards),
-                                   torch.tensor([self.episode]), self.settings)
-            with torch.no_grad():
-                self.grads = [g + s for g, s in zip(self.grads, step)]
-                self._params = self.model.adapted(self.grads)
-        self.episode += 1
-        self.steps = []
+        obs = np.zeros((len(self.episode), 1, OBS_SIZE))  # every lane's policy runs: cheaper than gathering weights
+        obs[lanes, 0] = state_vector(observations)
+        with torch.no_grad():
+            logits = policy_logits(self.params, torch.as_tensor(obs))[torch.as_tensor(lanes), 0]
+            probs = torch.softmax(logits, dim=1).numpy()
+        return pick_actions(probs, lanes, self.generators, self.greedy)
+
+    def observe(self, lanes: np.ndarray, transitions: Any) -> None:
+        """Keep the steps for the inner updates at the episodes' ends."""
+        self.steps.add(lanes, transitions)
+
+    def end_episode(self, lanes: np.ndarray) -> None:
+        """The inner step of each lane on the episode it just played."""
+        torch = _torch()
+        played = lanes[self.steps.count[lanes] > 0]
+        if played.size:
+            longest = int(self.steps.count[played].max())
+            mask = torch.as_tensor(np.arange(longest)[None, :] < self.steps.count[played][:, None], dtype=torch.float64)
+            obs = torch.as_tensor(self.steps.obs[played, :longest], dtype=torch.float64)
+            actions = torch.as_tensor(self.steps.action[played, :longest])
+            rewards = torch.as_tensor(self.steps.reward[played, :longest]) * self.settings.reward_scale * mask
+            index = torch.as_tensor(played)
+            step = inner_gradients(self.model, [g[index] for g in self.grads], obs, actions, rewards, mask,
+                                   torch.as_tensor(self.episode[played]), self.settings)
+            for g, s in zip(self.grads, step):
+                g[index] += s
+            self._adapt(played)
+        self.episode[lanes] += 1
+        self.steps.clear(lanes)
+
+    def _adapt(self, lanes: np.ndarray) -> None:
+        """theta_0 + alpha * G for `lanes`."""
+        torch = _torch()
+        index = torch.as_tensor(lanes)
+        with torch.no_grad():
+            for p, fresh in zip(self.params, self.model.adapted([g[index] for g in self.grads])):
+                p[index] = fresh
+
+
+def MAMLAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
+    """A one-lane MAML agent (the protocol's `Agent`): lane 0 of a `MAMLVectorAgent`."""
+    return SingleLane(MAMLVectorAgent(checkpoint, 1, seed, greedy))
 
 
 def make_agent(observation_space: Any = None, action_space: Any = None, checkpoint: str | Path | None = None,
-               seed: int | str = 0, greedy: bool | str = False) -> MAMLAgent:
+               seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
     """The agent file's factory (the protocol's `make_agent`)."""
     if checkpoint is None:
         raise ValueError("the MAML agent needs checkpoint=<path of a checkpoint.pt>")
@@ -417,7 +442,7 @@ def train_run(settings: Settings, folder: Path, resume: bool, command: str,
     """Train one seed into `folder` and make it a submission; the files written."""
     checkpoint = train(settings, folder, resume, progress)
     return [checkpoint, folder / METRICS, *write_submission(
-        folder, command, settings, "maml", "MAML", "MAMLAgent",
+        folder, command, settings, "maml", "MAML", "MAMLVectorAgent",
         "MAML (a feed-forward policy adapted by one policy-gradient step after each episode, meta-trained with "
         "first-order MAML and PPO; `mewa_bench/agents/maml.py`).")]
 

@@ -35,7 +35,7 @@ the SAC update, checkpoints, and `PEARLAgent`, which plays a checkpoint under th
 - Deterministic for a given seed on one machine (a torch.Generator for actions and z, an
   np.random.Generator for replay sampling, one thread). A resumed run starts with an empty replay.
 
-Status (issue 12): `mewa-bench train pearl` runs it, about 6.5k env steps/s end to end on one core of
+`mewa-bench train pearl` runs it, about 6.5k env steps/s end to end on one core of
 a busy machine (benchmarks/training.py; the SAC updates take most of it). Learning test
 (tests/test_pearl.py): 600 k steps on narrow-v1's meta-train workers; on 100 fresh meta-train
 workers its mean score is 0.9906 against the random task-specific baseline's exact 0.9778
@@ -55,11 +55,13 @@ from typing import Any
 
 import numpy as np
 
+from mewa_bench.protocol.agent import SingleLane, state_vector
+from mewa_bench.agents.lanes import LaneGenerators, LaneSteps, pick_actions, truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, keep_metrics_until,
                                            load_checkpoint, make_meta_env, mean_or_nan, save_checkpoint,
                                            settings_with, torch_module, write_submission)
 
-__all__ = ["CHECKPOINT", "METRICS", "PEARLAgent", "Settings", "make_agent", "settings_from", "train", "train_job",
+__all__ = ["CHECKPOINT", "METRICS", "PEARLAgent", "PEARLVectorAgent", "Settings", "make_agent", "settings_from", "train", "train_job",
            "train_run"]
 
 OBS_SIZE = 18
@@ -147,9 +149,10 @@ def make_model(settings: Settings) -> Any:
 def context_features(obs: Any, actions: Any, rewards: Any, next_obs: Any, done: Any) -> Any:
     """The encoder's input [..., 42] for transitions (next observation zeroed where the episode ended)."""
     torch = _torch()
-    live = (~done).float().unsqueeze(-1)
-    return torch.cat([obs / OBS_SCALE, torch.nn.functional.one_hot(actions, ACTIONS).float(), rewards.unsqueeze(-1),
-                      next_obs / OBS_SCALE * live, done.float().unsqueeze(-1)], dim=-1)
+    live = (~done).to(obs.dtype).unsqueeze(-1)
+    return torch.cat([obs / OBS_SCALE, torch.nn.functional.one_hot(actions, ACTIONS).to(obs.dtype),
+                      rewards.to(obs.dtype).unsqueeze(-1), next_obs / OBS_SCALE * live,
+                      done.to(obs.dtype).unsqueeze(-1)], dim=-1)
 
 
 def kl_to_prior(mean: Any, var: Any) -> Any:
@@ -380,12 +383,14 @@ def train(settings: Settings, out: Path, resume: bool = False,
     return out / CHECKPOINT
 
 
-class PEARLAgent:
-    """Plays a PEARL checkpoint under the evaluation protocol (SPEC section 6): z from the prior in a
-    pair's first episode, then from the posterior given its own transitions of the pair's earlier
-    episodes (at most `context_size` of them, subsampled), drawn again at every episode start."""
+class PEARLVectorAgent:
+    """Plays a PEARL checkpoint on many lanes at once under the evaluation protocol (SPEC section 6): per
+    lane z from the prior in a pair's first episode, then from the posterior given its own transitions
+    of the pair's earlier episodes (at most `context_size` of them, subsampled), drawn again at every
+    episode start; one actor pass per step for all lanes, one encoder pass for the lanes ending an episode."""
 
-    def __init__(self, checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> None:
+    def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
+                 greedy: bool | str = False) -> None:
         torch = _torch()
 
         torch.set_num_threads(1)
@@ -393,54 +398,64 @@ class PEARLAgent:
         self.settings = Settings(**state["settings"])
         self.model = make_model(self.settings)
         self.model.load_state_dict(state["model"])
-        self.model.eval()
-        self.seed = int(seed)
-        self.greedy = str(greedy).lower() in ("true", "1", "yes")
-        self.reset_task()
+        self.model.double().eval()
+        self.greedy = truthy(greedy)
+        self.generators = LaneGenerators(int(seed), int(num_lanes))
+        self.steps = LaneSteps(int(num_lanes), OBS_SIZE)
+        self.z = torch.zeros(int(num_lanes), self.settings.latent, dtype=torch.float64)
 
-    def reset_task(self, seed: int | None = None) -> None:
-        """A new pair: no context, z from the prior."""
+    def reset_task(self, lanes: np.ndarray, seeds: np.ndarray) -> None:
+        """New pairs: no context, z from the prior."""
         torch = _torch()
-        self.rng = np.random.default_rng([self.seed] if seed is None else [self.seed, seed])
-        self.transitions: list[tuple[np.ndarray, int, float, np.ndarray, bool]] = []
-        self.z = torch.as_tensor(self.rng.standard_normal(self.settings.latent), dtype=torch.float32)
+        self.generators.reset(lanes, seeds)
+        self.steps.clear(lanes)
+        for lane in lanes.tolist():
+            self.z[lane] = torch.as_tensor(self.generators[lane].standard_normal(self.settings.latent))
 
-    def act(self, observation: Any) -> int:
-        """The policy's action given z (sampled with the agent's own generator, or the most likely with greedy=true)."""
-        from mewa_bench.protocol.agent import state_vector
-
+    def act(self, lanes: np.ndarray, observations: Any) -> np.ndarray:
+        """The policy's actions given each lane's z (sampled with the lane's generator, or the most likely if greedy)."""
         torch = _torch()
         with torch.no_grad():
-            logits = self.model.logits(torch.as_tensor(state_vector(observation)), self.z)
-        probs = torch.softmax(logits, dim=0).double().numpy()
-        return int(np.argmax(probs)) if self.greedy else int(self.rng.choice(ACTIONS, p=probs / probs.sum()))
+            logits = self.model.logits(torch.as_tensor(state_vector(observations), dtype=torch.float64),
+                                       self.z[torch.as_tensor(lanes)])
+            probs = torch.softmax(logits, dim=1).numpy()
+        return pick_actions(probs, lanes, self.generators, self.greedy)
 
-    def observe(self, transition: Any) -> None:
-        """Keep the transition as context for the pair's next episodes."""
-        from mewa_bench.protocol.agent import state_vector
+    def observe(self, lanes: np.ndarray, transitions: Any) -> None:
+        """Keep the transitions as context for the pairs' next episodes."""
+        self.steps.add(lanes, transitions)
 
-        done = bool(transition.terminated or transition.truncated)
-        self.transitions.append((state_vector(transition.obs), int(transition.action), float(transition.reward),
-                                 state_vector(transition.next_obs), done))
-
-    def end_episode(self) -> None:
-        """Draw z for the next episode from the posterior given (a subsample of) the pair's transitions."""
+    def end_episode(self, lanes: np.ndarray) -> None:
+        """Draw z for each lane's next episode from the posterior given (a subsample of) its pair's transitions."""
         torch = _torch()
-        count, size = len(self.transitions), self.settings.context_size
-        chosen = np.arange(count) if count <= size else np.sort(self.rng.choice(count, size, replace=False))
-        picked = [self.transitions[i] for i in chosen]
-        context = context_features(torch.as_tensor(np.stack([t[0] for t in picked])),
-                                   torch.tensor([t[1] for t in picked]),
-                                   torch.tensor([t[2] for t in picked], dtype=torch.float32),
-                                   torch.as_tensor(np.stack([t[3] for t in picked])),
-                                   torch.tensor([t[4] for t in picked]))
-        noise = torch.as_tensor(self.rng.standard_normal(self.settings.latent), dtype=torch.float32)
+        size, buffer = self.settings.context_size, self.steps
+        picked, noise = [], []
+        for lane in lanes.tolist():
+            count, rng = int(buffer.count[lane]), self.generators[lane]
+            picked.append(np.arange(count) if count <= size else np.sort(rng.choice(count, size, replace=False)))
+            noise.append(rng.standard_normal(self.settings.latent))
+        width = max(1, max(len(rows) for rows in picked))
+        rows = np.zeros((len(picked), width), dtype=np.int64)
+        mask = np.zeros((len(picked), width))
+        for i, chosen in enumerate(picked):
+            rows[i, :len(chosen)], mask[i, :len(chosen)] = chosen, 1.0
+        at = (lanes[:, None], rows)
+        context = context_features(*(torch.as_tensor(a) for a in (buffer.obs[at].astype(np.float64), buffer.action[at],
+                                                                  buffer.reward[at],
+                                                                  buffer.next_obs[at].astype(np.float64),
+                                                                  buffer.done[at])))
         with torch.no_grad():
-            self.z = sample_latent(self.model, context[None], torch.ones(1, len(picked)), noise[None])[0]
+            self.z[torch.as_tensor(lanes)] = sample_latent(self.model, context, torch.as_tensor(mask),
+                                                           torch.as_tensor(np.stack(noise)))
+
+
+def PEARLAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
+    """A one-lane PEARL agent (the protocol's `Agent`): lane 0 of a `PEARLVectorAgent`."""
+    return SingleLane(PEARLVectorAgent(checkpoint, 1, seed, greedy))
 
 
 def make_agent(observation_space: Any = None, action_space: Any = None, checkpoint: str | Path | None = None,
-               seed: int | str = 0, greedy: bool | str = False) -> PEARLAgent:
+               seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
     """The agent file's factory (the protocol's `make_agent`)."""
     if checkpoint is None:
         raise ValueError("the PEARL agent needs checkpoint=<path of a checkpoint.pt>")
@@ -457,7 +472,7 @@ def train_run(settings: Settings, folder: Path, resume: bool, command: str,
     """Train one seed into `folder` and make it a submission; the files written."""
     checkpoint = train(settings, folder, resume, progress)
     return [checkpoint, folder / METRICS, *write_submission(
-        folder, command, settings, "pearl", "PEARL", "PEARLAgent",
+        folder, command, settings, "pearl", "PEARL", "PEARLVectorAgent",
         "PEARL (a probabilistic context encoder and discrete soft actor-critic with automatic temperature, "
         "posterior sampling per episode; `mewa_bench/agents/pearl.py`).")]
 

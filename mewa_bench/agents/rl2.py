@@ -20,10 +20,10 @@ evaluation protocol.
   which are most negative right after a new episode starts, taught it to stall before the last
   sub-goal (0.745 with a mistake-free worker, against 0.907 for random play).
 
-Status (issue 12, in progress): `mewa-bench train rl2` runs it; on the issue's two-worker task
-((0,1,1,1): greedy building is perfect; (1,1,1,0): only parallel building finishes) 4 M steps
-(~2 min on one core, ~32k steps/s) give adaptability +0.16 [0.14, 0.18] and +0.14 over the best
-fixed policy (tests/test_rl2.py). No checkpoint trained on the shipped suites is shipped yet.
+Learning test (tests/test_rl2.py): on a two-worker task ((0,1,1,1): greedy building is perfect;
+(1,1,1,0): only parallel building finishes) 4 M steps (~2 min on one core, ~32k steps/s) give
+adaptability +0.16 [0.14, 0.18] and +0.14 over the best fixed policy. Runs on the shipped suites:
+`submissions/rl2-*`, compared with the paper in docs/baselines.md.
 """
 
 from __future__ import annotations
@@ -35,12 +35,14 @@ from typing import Any, Callable
 
 import numpy as np
 
+from mewa_bench.agents.lanes import RecurrentLanes, truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, keep_metrics_until,
                                            load_checkpoint, make_meta_env, mean_or_nan, normalised_returns_paid,
                                            save_checkpoint, settings_with, torch_module, workers_arg)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
+from mewa_bench.protocol.agent import SingleLane
 
-__all__ = ["CHECKPOINT", "METRICS", "RL2Agent", "Settings", "gae", "settings_from", "train", "train_job", "train_run",
+__all__ = ["CHECKPOINT", "METRICS", "RL2Agent", "RL2VectorAgent", "Settings", "gae", "settings_from", "train", "train_job", "train_run",
            "workers_arg"]
 
 OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
@@ -256,11 +258,13 @@ def ppo_update(policy: Any, optimizer: Any, settings: Settings, obs: Any, reset:
     return {k: round(float(np.mean(v)), 6) for k, v in stats.items()}
 
 
-class RL2Agent:
-    """Plays an RL^2 checkpoint under the evaluation protocol (SPEC section 6): the hidden state and the
-    previous action, reward and new-episode flag are kept across the 10 episodes of a pair."""
+class RL2VectorAgent(RecurrentLanes):
+    """Plays an RL^2 checkpoint on many lanes at once under the evaluation protocol (SPEC section 6): per
+    lane the hidden state and the previous action, reward and new-episode flag are kept across the 10
+    episodes of a pair (`agents.lanes.RecurrentLanes`); one forward pass per step for all lanes."""
 
-    def __init__(self, checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> None:
+    def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
+                 greedy: bool | str = False) -> None:
         torch = _torch()
 
         torch.set_num_threads(1)
@@ -268,38 +272,17 @@ class RL2Agent:
         self.settings = Settings(**state["settings"])
         self.policy = make_policy(self.settings.hidden)
         self.policy.load_state_dict(state["model"])
-        self.policy.eval()
-        self.seed = int(seed)
-        self.greedy = str(greedy).lower() in ("true", "1", "yes")
-        self.reset_task()
+        self.policy.double().eval()
+        super().__init__(self._forward, self.settings.hidden, int(num_lanes), int(seed), truthy(greedy))
 
-    def reset_task(self, seed: int | None = None) -> None:
-        """A new pair: zero hidden state, no previous action."""
-        torch = _torch()
+    def _forward(self, x: Any, h: Any, reset: Any) -> tuple[Any, Any]:
+        logits, _, h = self.policy.step(x, h, reset)
+        return logits, h
 
-        self.rng = np.random.default_rng([self.seed] if seed is None else [self.seed, seed])
-        self.h = torch.zeros(1, self.settings.hidden)
-        self.previous_action, self.previous_reward, self.new_episode = -1, 0.0, 0.0
-        self.first = True
 
-    def act(self, observation: np.ndarray) -> int:
-        """The policy's action (sampled with the agent's own generator, or the most likely with greedy=true)."""
-        from mewa_bench.envs.meta_episode import meta_observation
-        from mewa_bench.protocol.agent import state_vector
-
-        torch = _torch()
-        x = meta_observation(state_vector(observation), self.previous_action, self.previous_reward, self.new_episode)
-        with torch.no_grad():
-            logits, _, self.h = self.policy.step(torch.as_tensor(x)[None], self.h, torch.tensor([self.first]))
-        self.first = False
-        probs = torch.softmax(logits[0], dim=0).double().numpy()
-        return int(np.argmax(probs)) if self.greedy else int(self.rng.choice(4, p=probs / probs.sum()))
-
-    def observe(self, transition: Any) -> None:
-        self.previous_action, self.previous_reward, self.new_episode = int(transition.action), float(transition.reward), 0.0
-
-    def end_episode(self) -> None:
-        self.new_episode = 1.0  # the next observation starts the pair's next episode
+def RL2Agent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
+    """A one-lane RL^2 agent (the protocol's `Agent`): lane 0 of an `RL2VectorAgent`."""
+    return SingleLane(RL2VectorAgent(checkpoint, 1, seed, greedy))
 
 
 def settings_from(values: dict[str, Any], base: Settings | None = None) -> Settings:
@@ -309,7 +292,7 @@ def settings_from(values: dict[str, Any], base: Settings | None = None) -> Setti
 
 def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:
     """Make the run folder a submission: agent.py (plays checkpoint.pt) and a README with the command."""
-    return write_submission_files(out, command, settings, "rl2", "RL^2", "RL2Agent",
+    return write_submission_files(out, command, settings, "rl2", "RL^2", "RL2VectorAgent",
                                   "RL^2 (a GRU policy trained with PPO on meta-episodes; `mewa_bench/agents/rl2.py`).")
 
 

@@ -1,11 +1,11 @@
-"""What the learned baselines share (issue 12): the algorithm registry, the meta-train env, metrics and
+"""What the learned baselines share: the algorithm registry, the meta-train env, metrics and
 checkpoint files, and the submission folder a run becomes. No torch at import time.
 
 An algorithm is a module listed in `ALGORITHMS` that exposes (what `mewa-bench train` calls):
 
 - `Settings`: a dataclass of everything a run depends on, saved in its checkpoint; it has at least
   `suite`, `seed`, `total_steps` and `workers` (list of worker vectors; empty: the suite's
-  meta-train distribution).
+  meta-train distribution), and the property `steps_per_update` (a run trains whole updates).
 - `settings_from(values: dict, base=None) -> Settings`: fields replaced, unknown names a ValueError
   naming them (`settings_with` below does it for any dataclass).
 - `train_run(settings, folder, resume, command, progress=...) -> list[Path]`: train (or resume from
@@ -17,8 +17,9 @@ An algorithm is a module listed in `ALGORITHMS` that exposes (what `mewa-bench t
 - `METRICS`: the metrics file name in the run folder. Every row has `update`, `env_steps` and the
   meta-train `episode_1_normalised_return` / `episode_10_normalised_return` (NaN when no such
   episode ended during the update), which the progress bar and the training curve read.
-- An agent class `XAgent(checkpoint, seed=0, greedy=False)` with the protocol's `reset_task`, `act`,
-  `observe`, `end_episode`, named in the submission's agent.py.
+- A vector agent class `XVectorAgent(checkpoint, num_lanes=1, seed=0, greedy=False)` with the batched
+  protocol's `reset_task`, `act`, `observe`, `end_episode` (`protocol.agent.VectorAgent`), named in
+  the submission's agent.py, and `XAgent(checkpoint, seed=0, greedy=False)`, its one-lane view.
 """
 
 from __future__ import annotations
@@ -82,6 +83,13 @@ def settings_with(cls: type[S], values: dict[str, Any], base: S | None = None, n
     if unknown:
         raise ValueError(f"unknown {name or cls.__name__} setting(s) {sorted(unknown)}; known: {sorted(start)}")
     return cls(**{**start, **values})
+
+
+def whole_updates(settings: S) -> S:
+    """`settings` with `total_steps` rounded up to whole updates (training runs whole updates only)."""
+    per_update = settings.steps_per_update  # type: ignore[attr-defined]
+    updates = max(1, -(-settings.total_steps // per_update))  # type: ignore[attr-defined]
+    return settings_with(type(settings), {"total_steps": updates * per_update}, base=settings)
 
 
 def workers_arg(text: Sequence[str]) -> list[list[float]]:
@@ -187,8 +195,8 @@ from {module} import {agent_class}
 PRIVILEGED = False
 
 
-def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
-    return {agent_class}(checkpoint or Path(__file__).with_name("{checkpoint}"), seed=seed, greedy=greedy)
+def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="false"):
+    return {agent_class}(checkpoint or Path(__file__).with_name("{checkpoint}"), num_lanes, seed=seed, greedy=greedy)
 '''
 
 

@@ -25,8 +25,8 @@ checkpoint under the evaluation protocol.
   return paid when it ends, see `rl2.learning_signal`).
 - Deterministic for a given seed on one machine (torch's CPU kernels, one thread).
 
-Status (issue 12): `mewa-bench train varibad` runs it (~33k env steps/s on one core on narrow-v1,
-so 4 M steps in about 2 minutes; benchmarks/training.py). On the issue's two-worker task
+`mewa-bench train varibad` runs it (~33k env steps/s on one core on narrow-v1,
+so 4 M steps in about 2 minutes; benchmarks/training.py). On a two-worker task
 ((0,1,1,1): greedy building is perfect; (1,1,1,0): only parallel building finishes) 4 M steps
 (~3 min on one core) give adaptability +0.16 [0.13, 0.19] and +0.11 over the best fixed policy
 (tests/test_varibad.py; seeds 2 and 3: +0.18 and +0.14/+0.14). The VAE needed its learning rate at
@@ -43,14 +43,16 @@ from typing import Any
 
 import numpy as np
 
+from mewa_bench.agents.lanes import RecurrentLanes, truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, keep_metrics_until,
                                            load_checkpoint, make_meta_env, mean_or_nan, normalised_returns_paid,
                                            save_checkpoint, settings_with, torch_module, workers_arg)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
+from mewa_bench.protocol.agent import SingleLane
 from mewa_bench.envs.meta_episode import META_OBS_SIZE, NEW_EPISODE, PREVIOUS_REWARD
 from mewa_bench.game.palette import NUM_COLORS, OBS_SIZE
 
-__all__ = ["CHECKPOINT", "METRICS", "Settings", "VariBADAgent", "settings_from", "train", "train_job", "train_run",
+__all__ = ["CHECKPOINT", "METRICS", "Settings", "VariBADAgent", "VariBADVectorAgent", "settings_from", "train", "train_job", "train_run",
            "workers_arg"]
 
 OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
@@ -450,12 +452,13 @@ def vae_update(model: Any, optimizer: Any, settings: Settings, episodes: Episode
 # ---------------------------------------------------------------------------------------------- evaluation
 
 
-class VariBADAgent:
-    """Plays a VariBAD checkpoint under the evaluation protocol (SPEC section 6): the encoder's hidden
-    state (the belief) and the previous action, reward and new-episode flag are kept across the 10
-    episodes of a pair."""
+class VariBADVectorAgent(RecurrentLanes):
+    """Plays a VariBAD checkpoint on many lanes at once under the evaluation protocol (SPEC section 6): per
+    lane the encoder's hidden state (the belief) and the previous action, reward and new-episode flag
+    are kept across the 10 episodes of a pair (`agents.lanes.RecurrentLanes`)."""
 
-    def __init__(self, checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> None:
+    def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
+                 greedy: bool | str = False) -> None:
         torch = _torch()
 
         torch.set_num_threads(1)
@@ -463,42 +466,19 @@ class VariBADAgent:
         self.settings = Settings(**state["settings"])
         self.model = make_model(self.settings)
         self.model.load_state_dict(state["model"])
-        self.model.eval()
-        self.seed = int(seed)
-        self.greedy = str(greedy).lower() in ("true", "1", "yes")
-        self.reset_task()
+        self.model.double().eval()
+        super().__init__(self._forward, self.settings.encoder_hidden, int(num_lanes), int(seed), truthy(greedy))
 
-    def reset_task(self, seed: int | None = None) -> None:
-        """A new pair: the prior belief (zero hidden state), no previous action."""
-        torch = _torch()
+    def _forward(self, x: Any, h: Any, reset: Any) -> tuple[Any, Any]:
+        """The belief updated with this step's input, and the policy's logits on it."""
+        mu, logvar, h = self.model.encode_step(x, h, reset)
+        logits, _ = self.model.act(x[:, :STATE], mu, logvar)
+        return logits, h
 
-        self.rng = np.random.default_rng([self.seed] if seed is None else [self.seed, seed])
-        self.h = torch.zeros(1, self.settings.encoder_hidden)
-        self.previous_action, self.previous_reward, self.new_episode = -1, 0.0, 0.0
-        self.first = True
 
-    def act(self, observation: np.ndarray) -> int:
-        """The policy's action on the updated belief (sampled with the agent's own generator, or the most
-        likely with greedy=true)."""
-        from mewa_bench.envs.meta_episode import meta_observation
-        from mewa_bench.protocol.agent import state_vector
-
-        torch = _torch()
-        x = torch.as_tensor(meta_observation(state_vector(observation), self.previous_action, self.previous_reward,
-                                             self.new_episode))[None]
-        with torch.no_grad():
-            mu, logvar, self.h = self.model.encode_step(x, self.h, torch.tensor([self.first]))
-            logits, _ = self.model.act(x[:, :STATE], mu, logvar)
-        self.first = False
-        probs = torch.softmax(logits[0], dim=0).double().numpy()
-        return int(np.argmax(probs)) if self.greedy else int(self.rng.choice(ACTIONS, p=probs / probs.sum()))
-
-    def observe(self, transition: Any) -> None:
-        self.previous_action, self.previous_reward = int(transition.action), float(transition.reward)
-        self.new_episode = 0.0
-
-    def end_episode(self) -> None:
-        self.new_episode = 1.0  # the next observation starts the pair's next episode
+def VariBADAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
+    """A one-lane VariBAD agent (the protocol's `Agent`): lane 0 of a `VariBADVectorAgent`."""
+    return SingleLane(VariBADVectorAgent(checkpoint, 1, seed, greedy))
 
 
 # ---------------------------------------------------------------------------------------------- runs
@@ -511,7 +491,7 @@ def settings_from(values: dict[str, Any], base: Settings | None = None) -> Setti
 
 def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:
     """Make the run folder a submission: agent.py (plays checkpoint.pt) and a README with the command."""
-    return write_submission_files(out, command, settings, "varibad", "VariBAD", "VariBADAgent",
+    return write_submission_files(out, command, settings, "varibad", "VariBAD", "VariBADVectorAgent",
                                   "VariBAD (a GRU encoder's posterior over a latent task embedding, trained as a VAE "
                                   "that decodes the meta-episode's transitions, and a policy on (state, belief) "
                                   "trained with PPO; `mewa_bench/agents/varibad.py`).")

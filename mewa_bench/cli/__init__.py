@@ -13,6 +13,7 @@ from rich.progress import (BarColumn, DownloadColumn, MofNCompleteColumn, Progre
 from rich.table import Table
 
 from mewa_bench.extras import MissingExtra
+from mewa_bench.protocol.config import default_seeds_text
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="MEWA meta-RL benchmark: evaluate agents on frozen suites, generate suites, record data.")
@@ -33,7 +34,7 @@ def info() -> None:
 @app.command()
 def rollout(episodes: int = typer.Option(3, min=1, help="Episodes to play."),
             seed: int = typer.Option(0, help="Seed of the env and the policy."),
-            render: bool = typer.Option(False, metavar="", help="Print every step as text.")) -> None:
+            render: bool = typer.Option(False, "--render", metavar="", help="Print every step as text.")) -> None:
     """Play a few episodes of the default env (narrow-v1 task, meta-train workers) with random actions."""
     from mewa_bench.envs.rollout import random_rollouts
 
@@ -44,7 +45,10 @@ def rollout(episodes: int = typer.Option(3, min=1, help="Episodes to play."),
     console.print(table)
 
 
-DEFAULT_SEEDS_HELP = "the suite's protocol seeds: 256 on narrow-*, 96 on wide-*, 50 on suites of your own"
+DEFAULT_SEEDS_HELP = f"the suite's protocol seeds: {default_seeds_text()}"
+LOG_HELP = ("Trajectory logs to write: mcap, rerun or mcap,rerun. A ranked run's logs are large (random agent: about "
+            "220 MB of MCAP and 370 MB of .rrd on a narrow suite, 340 MB and 600 MB on a wide one): log a subset with "
+            "--log-pairs / --log-seeds.")
 RAY_HELP = "Run the units as Ray tasks on a local Ray instance (needs the ray extra; --jobs caps its CPUs)."
 RAY_ADDRESS_HELP = ("Run the units as Ray tasks on the Ray cluster at this address (e.g. 10.0.0.5:6379 or auto); "
                     "nodes need mewa-bench and the agent file at the same path.")
@@ -54,24 +58,26 @@ RAY_ADDRESS_HELP = ("Run the units as Ray tasks on the Ray cluster at this addre
 def evaluate(
     agent: Path = typer.Argument(..., metavar="AGENT", help="Your agent: a .py file with make_agent(observation_space, action_space) or class Agent."),
     suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1: the paper's; narrow-v2, wide-v2: recommended for adaptation) or path."),
-    seeds: str = typer.Option("default", help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; default: "
+    seeds: str = typer.Option("default", show_default=False, help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; default: "
                               f"{DEFAULT_SEEDS_HELP} (ranked runs use exactly these)."),
     out: Path = typer.Option(None, help="Results file (default: results/<agent>-<suite>.json)."),
     name: str = typer.Option(None, help="Agent name in the results (default: from the file name)."),
-    agent_arg: list[str] = typer.Option([], "--agent-arg", help="key=value passed to make_agent / Agent (repeatable)."),
+    agent_arg: list[str] = typer.Option([], "--agent-arg", metavar="K=V", help="key=value passed to make_agent / Agent (repeatable)."),
     checkpoint: str = typer.Option(None, help="Checkpoint path passed to the agent as checkpoint=..."),
     in_process: bool = typer.Option(False, "--in-process", metavar="", help="Run the agent in this process (debugging; no limits)."),
     time_limit: float = typer.Option(10.0, help="Seconds per agent call (0 = none)."),
     memory_limit: str = typer.Option("4G", help="Agent address-space limit, e.g. 4G, 512M, or none."),
-    privileged: bool = typer.Option(False, metavar="", help="Tell the agent the hidden pair (reference agents only; never ranked)."),
-    jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
-    lanes: int = typer.Option(64, min=1, help="Agent objects played side by side per process (one IPC round trip "
+    privileged: bool = typer.Option(False, "--privileged", metavar="", help="Tell the agent the hidden pair (reference agents only; never ranked)."),
+    jobs: int = typer.Option(1, min=1, metavar="N", help="Parallel worker processes over (pair, seed) units."),
+    lanes: int = typer.Option(64, min=1, metavar="N", help="Agent objects played side by side per process (one IPC round trip "
                               "per step for all of them); 1 = one agent playing the units in order."),
-    resume: bool = typer.Option(False, metavar="", help="Continue an interrupted run in the same results file (same agent file)."),
-    overwrite: bool = typer.Option(False, metavar="", help="Replace an existing results file."),
+    resume: bool = typer.Option(False, "--resume", metavar="", help="Continue an interrupted run in the same results file (same agent file)."),
+    overwrite: bool = typer.Option(False, "--overwrite", metavar="", help="Replace an existing results file."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
-    log: str = typer.Option(None, help="Trajectory logs to write: mcap, rerun or mcap,rerun."),
+    log: str = typer.Option(None, help=LOG_HELP),
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files (named after the results file)."),
+    log_pairs: str = typer.Option(None, help="Log only these pairs, e.g. 0,3 (every unit is still played and scored)."),
+    log_seeds: str = typer.Option(None, help="Log only these seeds: a count (2 = seeds 0, 1) or a comma list."),
     mode: str = typer.Option("vector", help="vector (float32[18]) or sapien ({'state', 'image'} rendered by SAPIEN)."),
     image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
     ray: bool = typer.Option(False, "--ray", metavar="", help=RAY_HELP),
@@ -89,7 +95,8 @@ def evaluate(
         pairs=tuple(_parse_ints(pairs, "--pairs")) if pairs else None, ray=_ray_option(ray, ray_address),
         **_mode_options(mode, image_size))
     results, path, logs = _run_with_progress(config, log, log_dir, f"{agent.name} on {suite}",
-                                             resume_hint="re-run the same command with --resume to continue")
+                                             resume_hint="re-run the same command with --resume to continue",
+                                             log_subset=_log_subset(log, log_pairs, log_seeds))
     console.print(results_table(results))
     console.print(f"results: [bold]{path}[/bold]" + ("" if results["complete"] else " (partial run: not rankable)"))
     for p in logs:
@@ -110,7 +117,17 @@ def _ray_option(ray: bool, address: str | None) -> str | None:
     return address or LOCAL
 
 
-def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra_sinks=(), resume_hint: str = ""):
+def _log_subset(log: str | None, pairs: str | None, seeds: str | None) -> dict:
+    """make_log_sinks' pairs and seeds from --log-pairs and --log-seeds (which need --log)."""
+    if (pairs or seeds) and not log:
+        raise typer.BadParameter("--log-pairs and --log-seeds choose what --log writes: add --log mcap or rerun",
+                                 param_hint="--log")
+    return {"pairs": tuple(_parse_ints(pairs, "--log-pairs")) if pairs else None,
+            "seeds": _parse_seeds(seeds, "--log-seeds") if seeds else None}
+
+
+def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra_sinks=(), resume_hint: str = "",
+                       log_subset: dict | None = None):
     """Run `evaluate` with a progress bar, log sinks and clear errors; (results, results path, log paths)."""
     from mewa_bench.logs.files import make_log_sinks, parse_log_kinds
     from mewa_bench.protocol.config import default_results_path
@@ -120,7 +137,7 @@ def _run_with_progress(config, log: str | None, log_dir: Path, label: str, extra
     try:
         kinds = parse_log_kinds(log)
         stem = (config.out or default_results_path(config, load_suite(config.suite))).stem
-        sinks = [*make_log_sinks(kinds, log_dir, stem), *extra_sinks]
+        sinks = [*make_log_sinks(kinds, log_dir, stem, **(log_subset or {})), *extra_sinks]
     except (ValueError, OSError) as e:  # bad --log, or a --log-dir that cannot be created
         _print_error(e)
         raise typer.Exit(1) from None
@@ -162,14 +179,14 @@ def record(
     fps: int = typer.Option(10, help="Frames per second stored in the dataset."),
     results: Path = typer.Option(None, help="Results file of the rollout (default: <out>.results.json)."),
     agent_arg: list[str] = typer.Option([], "--agent-arg", help="key=value passed to the agent (repeatable)."),
-    privileged: bool = typer.Option(False, metavar="", help="Tell an agent file the hidden pair (e.g. the oracle)."),
+    privileged: bool = typer.Option(False, "--privileged", metavar="", help="Tell an agent file the hidden pair (e.g. the oracle)."),
     jobs: int = typer.Option(1, min=1, help="Parallel worker processes over (pair, seed) units."),
     log: str = typer.Option(None, help="Also write trajectory logs: mcap, rerun or mcap,rerun."),
     log_dir: Path = typer.Option(Path("logs"), help="Folder for the log files."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3."),
     mode: str = typer.Option("vector", help="vector, or sapien to also record camera images."),
     image_size: str = typer.Option("128x128", help="Image size HxW in sapien mode."),
-    video: bool = typer.Option(False, metavar="", help="Store sapien images as AV1 video (smaller, lossy) instead of PNG."),
+    video: bool = typer.Option(False, "--video", metavar="", help="Store sapien images as AV1 video (smaller, lossy) instead of PNG."),
     ray: bool = typer.Option(False, "--ray", metavar="", help=RAY_HELP),
     ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP),
 ) -> None:
@@ -197,7 +214,7 @@ def record(
 
 @app.command()
 def view(file: Path = typer.Argument(..., metavar="FILE", help="A Rerun recording (.rrd) written with --log rerun."),
-         web: bool = typer.Option(False, metavar="", help="Serve the web viewer on 127.0.0.1 instead of opening a window."),
+         web: bool = typer.Option(False, "--web", metavar="", help="Serve the web viewer on 127.0.0.1 instead of opening a window."),
          port: int = typer.Option(None, help="Port of the web viewer.")) -> None:
     """Open a Rerun recording in the Rerun viewer."""
     import os
@@ -264,12 +281,12 @@ def _parse_ints(text: str, option: str) -> list[int]:
         raise typer.BadParameter(f"expected integers separated by commas, got {text!r}", param_hint=option) from None
 
 
-def _parse_seeds(text: str) -> tuple[int, ...]:
-    values = _parse_ints(text, "--seeds")
+def _parse_seeds(text: str, option: str = "--seeds") -> tuple[int, ...]:
+    values = _parse_ints(text, option)
     if "," not in text and len(values) == 1:
         if values[0] < 1:
             raise typer.BadParameter("a single number is a count of seeds (3 = seeds 0, 1, 2); for the one seed 0 "
-                                     "use --seeds 1, for another one seed N use --seeds N,", param_hint="--seeds")
+                                     f"use {option} 1, for another one seed N use {option} N,", param_hint=option)
         return tuple(range(values[0]))
     return tuple(values)
 
@@ -304,7 +321,7 @@ app.add_typer(suites_app, name="suites")
 def generate(kind: str = typer.Argument(..., metavar="KIND", help="narrow, wide, narrow-v2 or wide-v2"),
              out: Path = typer.Option(None, "--out", help="Where to write the suite (default: ./<name>.json; "
                                                            "with --check, nothing is written unless --out is given)."),
-             check: bool = typer.Option(False, metavar="", help="Compare the result byte for byte with the shipped suite."),
+             check: bool = typer.Option(False, "--check", metavar="", help="Compare the result byte for byte with the shipped suite."),
              ray: bool = typer.Option(False, "--ray", metavar="", help="Design the candidate tasks as Ray tasks on a local Ray "
                                                            "instance (wide suites: one task per Ray task)."),
              ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP)) -> None:
@@ -351,10 +368,11 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
           suite: str = typer.Option("narrow-v1", help="Suite whose tasks and meta-train workers it trains on."),
           seed: list[int] = typer.Option([1], "--seed", help="Training seed (repeatable: one run per seed; "
                                                            "runs are deterministic given it)."),
-          steps: int = typer.Option(4_000_000, min=1, help="Env steps to train for."),
+          steps: int = typer.Option(4_000_000, min=1, help="Env steps to train for, rounded up to whole updates "
+                                                           "(the exact number is printed before training starts)."),
           out: Path = typer.Option(None, help="Run folder (default: runs/<algo>-<suite>-seed<seed>; with several "
-                                              "seeds, <out>/seed<seed>)."),
-          resume: bool = typer.Option(False, metavar="", help="Continue from the run folder's last checkpoint."),
+                                              "seeds, <out>/<algo>-<suite>-seed<seed>)."),
+          resume: bool = typer.Option(False, "--resume", metavar="", help="Continue from the run folder's last checkpoint."),
           worker: list[str] = typer.Option([], "--worker", help="Train on this worker only, e.g. 0,1,1,1 "
                                                                 "(repeatable; default: the suite's meta-train distribution)."),
           rerun: bool = typer.Option(False, "--rerun", metavar="", help="Also log the metrics as Rerun scalars to "
@@ -365,7 +383,8 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     """Train a learned meta-RL baseline; each run folder becomes a submission (agent.py, checkpoint, metrics)."""
     import shlex
 
-    from mewa_bench.agents.training_io import UnknownAlgorithm, load_algorithm, workers_arg
+    from mewa_bench.protocol.run_info import RunInfo, run_name, write_run_info
+    from mewa_bench.agents.training_io import UnknownAlgorithm, load_algorithm, whole_updates, workers_arg
 
     try:
         module = load_algorithm(algo)
@@ -374,15 +393,19 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     address = _ray_option(ray, ray_address)
     jobs = []
     for s in dict.fromkeys(seed):  # each seed once, in the order given
-        folder = (out / f"seed{s}" if len(seed) > 1 else out) if out else Path("runs") / f"{algo}-{suite}-seed{s}"
+        name = run_name(algo, suite, s)  # never seed<s> alone: two algorithms' runs must not collide
+        folder = (out / name if len(seed) > 1 else out) if out else Path("runs") / name
         try:
-            settings = module.settings_from({"suite": suite, "seed": s, "total_steps": steps,
-                                             "workers": workers_arg(worker)})
+            settings = whole_updates(module.settings_from({"suite": suite, "seed": s, "total_steps": steps,
+                                                           "workers": workers_arg(worker)}))
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--worker") from None
         command = " ".join(["mewa-bench train", algo, "--suite", shlex.quote(suite), "--seed", str(s), "--steps",
-                            str(steps), "--out", shlex.quote(str(folder)), *(f"--worker {w}" for w in worker)])
+                            str(settings.total_steps), "--out", shlex.quote(str(folder)), *(f"--worker {w}" for w in worker)])
         jobs.append((settings, folder.resolve(), resume, command))
+    console.print(_steps_text(steps, jobs[0][0]))
+    if address is None:
+        console.print(TRAIN_PROGRESS_TEXT)
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console) as bar:
         if address is not None:  # one seed per Ray task; progress as seeds finish
@@ -398,14 +421,14 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
         else:
             written = []
             for settings, folder, _, command in jobs:
-                task = bar.add_task(f"{algo} on {suite}, seed {settings.seed}", total=steps)
+                task = bar.add_task(f"{algo} on {suite}, seed {settings.seed}", total=settings.total_steps)
                 scalars = _or_exit(lambda: _training_scalars(folder, f"{algo} on {suite}, seed {settings.seed}",
                                                              resume)) if rerun else None
 
                 def show(done: int, total: int, row: dict, task=task, s=settings.seed, scalars=scalars) -> None:
                     bar.update(task, completed=done, total=total, description=(
-                        f"{algo} on {suite}, seed {s}: episode 1 {row['episode_1_normalised_return']:.3f}, "
-                        f"episode 10 {row['episode_10_normalised_return']:.3f}"))
+                        f"{algo} seed {s} meta-train: {row['episode_1_normalised_return']:.2f} -> "
+                        f"{row['episode_10_normalised_return']:.2f}"))
                     if scalars is not None:
                         scalars.log(row)
 
@@ -418,10 +441,24 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     from mewa_bench.reports.training_curves import plot_training_curves
 
     for (settings, folder, _, _), paths in zip(jobs, written):
+        paths.append(write_run_info(folder, RunInfo(algorithm=algo, seed=settings.seed, suite=suite,
+                                                    steps=settings.total_steps)))
         curve = plot_training_curves({f"seed {settings.seed}": folder / module.METRICS}, folder / "training_curve.png",
                                      f"{algo} on {suite}, seed {settings.seed}")
         for path in [*paths, curve]:
             console.print(f"wrote {path}")
+
+
+TRAIN_PROGRESS_TEXT = ("progress: meta-train normalised return, episode 1 -> 10 of a pair (not a score: `evaluate` "
+                       "scores the suite's curated test workers, which training never meets; see the README)")
+
+
+def _steps_text(asked: int, settings) -> str:
+    """What a run will train: the exact env steps and updates, and whether --steps was rounded up."""
+    per, total = settings.steps_per_update, settings.total_steps
+    rounded = f"; --steps {asked:,} rounded up to whole updates" if total != asked else ""
+    updates = total // per
+    return f"training {total:,} env steps per run ({updates:,} update{'s' * (updates != 1)} of {per:,}{rounded})"
 
 
 @suites_app.command("list")
@@ -468,7 +505,34 @@ def suites_report(out: Path = typer.Option(Path("docs"), "--out", help="Folder f
         console.print(f"wrote {path}")
 
 
-datasets_app = typer.Typer(no_args_is_help=True, help="List, inspect, download and pack offline datasets.")
+results_app = typer.Typer(no_args_is_help=True, help="Results files: convert to the compact layout.")
+app.add_typer(results_app, name="results")
+
+
+@results_app.command("convert")
+def results_convert(files: list[Path] = typer.Argument(..., metavar="FILE", help="Results files to rewrite.")) -> None:
+    """Rewrite schema-2 results files as schema 3 (compact units), each after checking it: its units, env seeds
+    and scores must come back exactly; a file that fails a check is left as it was."""
+    from mewa_bench.protocol.results_convert import convert_results
+
+    failed = 0
+    for path in files:
+        try:
+            done = convert_results(path)
+        except (ValueError, OSError) as e:
+            _print_error(e)
+            failed += 1
+            continue
+        if done.schema_before == 3:
+            console.print(f"{escape(str(path))}: schema 3 already, left as it is")
+        else:
+            console.print(f"{escape(str(path))}: schema {done.schema_before} -> 3, {done.bytes_before / 1e6:.2f} MB -> "
+                          f"{done.bytes_after / 1e6:.2f} MB")
+    if failed:
+        raise typer.Exit(1)
+
+
+datasets_app = typer.Typer(no_args_is_help=True, help="List, inspect, build, download and pack offline datasets.")
 app.add_typer(datasets_app, name="datasets")
 CATALOG_HELP = ("Dataset catalog (default: $MEWA_DATASETS_CATALOG, else datasets/index.json of the checkout, else the "
                 "copy a wheel installs in <prefix>/share/mewa-bench/datasets).")
@@ -476,28 +540,29 @@ CATALOG_HELP = ("Dataset catalog (default: $MEWA_DATASETS_CATALOG, else datasets
 
 @datasets_app.command("list")
 def datasets_list(catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
-    """The datasets in the catalog."""
+    """The datasets in the catalog: training data, training datasets to build, evaluation recordings."""
+    from mewa_bench.cli.dataset_tables import buildable_table, evaluation_table, training_table
     from mewa_bench.datasets.catalog import load_catalog
+    from mewa_bench.datasets.training_data import TRAINING_DATASETS
 
     content = _or_exit(load_catalog, catalog)
-    table = Table("name", "version", "suite", "policy", "episodes", "frames", "size", "source")
-    for e in content["datasets"]:
-        size = f"{e['size'] / 1e6:.1f} MB" if "size" in e else ""
-        table.add_row(e["name"], e["version"], e["suite"], e["policy"], f"{e['episodes']:,}", f"{e['frames']:,}",
-                      size, e.get("hf_repo_id") or e["url"].rsplit("/", 1)[-1])
-    console.print(table)
+    console.print(training_table(content))
+    console.print(buildable_table(TRAINING_DATASETS, content))
+    console.print(evaluation_table(content))
 
 
 @datasets_app.command("info")
 def datasets_info(name: str = typer.Argument(..., metavar="NAME", help="Dataset name (or name@version)."),
                   catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
-    """Everything the catalog says about one dataset."""
-    from mewa_bench.datasets.catalog import dataset_info, load_catalog
+    """Everything the catalog says about one dataset (a recording of the test pairs says so first)."""
+    from mewa_bench.datasets.catalog import EVALUATION_WARNING, TRAINING, dataset_info, entry_kind, load_catalog
 
     entry = _or_exit(lambda: dataset_info(load_catalog(catalog), name))
+    if entry_kind(entry) != TRAINING:
+        console.print(f"[bold red]warning:[/bold red] {escape(EVALUATION_WARNING)}")
     table = Table(show_header=False, box=None)
     for key, value in entry.items():
-        table.add_row(f"[bold]{key}[/bold]", str(value))
+        table.add_row(f"[bold]{key}[/bold]", escape(str(value)))
     console.print(table)
 
 
@@ -554,6 +619,29 @@ def datasets_pack(dataset: Path = typer.Argument(..., metavar="DATASET", help="A
     console.print(f"wrote {out / archive_name(name, version)} ({entry['size']:,} bytes, sha256 {entry['sha256'][:16]}…); catalog {catalog_path}")
 
 
+@datasets_app.command("build")
+def datasets_build(name: str = typer.Argument(..., metavar="NAME", help="A training dataset, e.g. narrow-v2-train-expert "
+                                                                         "(`datasets list` shows them all)."),
+                   out: Path = typer.Option(Path("mewa-datasets"), "--out", help="Folder for the dataset and its archive."),
+                   frames: int = typer.Option(None, min=1, help="Frame target (default: the dataset's, 1,000,000)."),
+                   jobs: int = typer.Option(2, min=1, help="Processes for the exact labels and values (and the expert)."),
+                   catalog: Path = typer.Option(None, help="Catalog to record the archive in (default: <out>/index.json).")) -> None:
+    """Build a training dataset (meta-train workers only, exact optimal labels) deterministically, pack it and
+    record its sha256 in a catalog."""
+    from mewa_bench.datasets.build import build_named
+
+    with console.status(f"building {name}"):
+        result = _or_exit(lambda: build_named(name, out, frames, jobs, catalog))
+    e = result.entry
+    console.print(f"[green]ok[/green] {result.root} ({e['frames']:,} frames, {e['episodes']:,} episodes, "
+                  f"{e['frames'] / result.build_seconds:,.0f} frames/s: built in {result.build_seconds:.1f} s, packed in "
+                  f"{result.pack_seconds:.1f} s); sha256 {e['sha256']} in {result.catalog}")
+    if result.matches_record is not None:
+        verdict = "[green]matches[/green]" if result.matches_record else "[yellow]differs from[/yellow]"
+        console.print(f"the archive {verdict} the sha256 the shipped catalog records for this build")
+    console.print(f"load it: mewa_bench.datasets.load_training_dataset('{result.root}')")
+
+
 def _print_error(error: Exception) -> None:
     """Print a library error's message as it is (not as rich markup, which would eat `mewa-bench[datasets]`)."""
     console.print(f"[red]error:[/red] {escape(str(error))}")
@@ -586,7 +674,10 @@ def _or_exit(call, *args):
 
 from mewa_bench.cli.service_commands import serve_app, status, submit  # noqa: E402 (the service's commands)
 
+from mewa_bench.cli.compare_command import compare  # noqa: E402 (algorithms over training runs)
+
 app.add_typer(serve_app, name="serve")
+app.command()(compare)
 app.command()(submit)
 app.command()(status)
 

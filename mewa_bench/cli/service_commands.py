@@ -57,6 +57,15 @@ def serve(ctx: typer.Context,
           max_results_mb: float = typer.Option(None, help="Largest results file in MB (default 64)."),
           max_agent_mb: float = typer.Option(None, help="Largest agent file in MB (default 1)."),
           max_checkpoint_mb: float = typer.Option(None, help="Largest checkpoint archive in MB (default 256)."),
+          uploads_in_flight: int = typer.Option(None, min=1, help="Submissions received at once; more get a 503 "
+                                                                   "with Retry-After (default 4)."),
+          job_seconds: float = typer.Option(None, min=1, help="Wall-clock limit of an agent job's attempt, enforced "
+                                                              "mid-call (default 21600)."),
+          scratch_mb: float = typer.Option(None, help="An agent job's scratch directory on disk, in MB (default 1024)."),
+          memory_mb: float = typer.Option(None, help="Memory of an agent's process and of its sandbox as a whole, in "
+                                                     "MB (default 4096)."),
+          rank_uploads: bool = typer.Option(False, "--rank-uploads", help="Rank self-reported results uploads beside "
+                                                                         "server-evaluated agents (default: unranked)."),
           log_level: str = typer.Option("info", help="debug, info, warning or error.")) -> None:
     """Serve the API (OpenAPI at /openapi.json, pages at /) with its evaluation workers, until Ctrl-C."""
     if ctx.invoked_subcommand is not None:
@@ -70,9 +79,13 @@ def serve(ctx: typer.Context,
         limits = {"rate_per_minute": rate_limit, "daily_results": daily_results, "daily_agents": daily_agents,
                   "results_bytes": None if max_results_mb is None else int(max_results_mb * MiB),
                   "agent_bytes": None if max_agent_mb is None else int(max_agent_mb * MiB),
-                  "checkpoint_bytes": None if max_checkpoint_mb is None else int(max_checkpoint_mb * MiB)}
+                  "checkpoint_bytes": None if max_checkpoint_mb is None else int(max_checkpoint_mb * MiB),
+                  "uploads_in_flight": uploads_in_flight}
         settings = _settings(data_dir, db, seeds=seeds, hidden=hidden, lease_seconds=lease_seconds,
-                             max_attempts=max_attempts, limits=Limits(**{k: v for k, v in limits.items() if v is not None}))
+                             max_attempts=max_attempts, limits=Limits(**{k: v for k, v in limits.items() if v is not None}),
+                             job_seconds=job_seconds, rank_uploads=rank_uploads,
+                             scratch_bytes=None if scratch_mb is None else int(scratch_mb * MiB),
+                             memory_bytes=None if memory_mb is None else int(memory_mb * MiB))
         console.print(f"mewa-bench service on http://{host}:{port} (data dir {settings.data_dir}, "
                       f"{'database ' + db.split('@')[-1] if db else 'SQLite in the data dir'}, {workers} worker(s))")
         run_server(settings, host, port, workers, log_level)
@@ -84,6 +97,10 @@ def serve(ctx: typer.Context,
 def serve_worker(data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir", help=DATA_DIR_HELP),
                  db: str = typer.Option(None, "--db", help=DB_HELP),
                  lease_seconds: float = typer.Option(60.0, help="Lease length of a claimed job."),
+                 job_seconds: float = typer.Option(None, min=1, help="Wall-clock limit of an agent job's attempt "
+                                                                     "(default 21600)."),
+                 memory_mb: float = typer.Option(None, help="Memory of an agent's process and of its sandbox as a "
+                                                            "whole, in MB (default 4096)."),
                  max_jobs: int = typer.Option(None, min=1, help="Stop after this many jobs (default: run until stopped).")
                  ) -> None:
     """Run one evaluation worker against a server's database and data dir (for more workers, or other machines)."""
@@ -93,7 +110,8 @@ def serve_worker(data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir
     from mewa_bench.service.worker import run_worker
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s[%(process)d] %(levelname)s %(message)s")
-    settings = _settings(data_dir, db, lease_seconds=lease_seconds)
+    settings = _settings(data_dir, db, lease_seconds=lease_seconds, job_seconds=job_seconds,
+                         memory_bytes=None if memory_mb is None else int(memory_mb * (1 << 20)))
     try:
         engine = make_engine(settings.database_url)
         migrate(engine)
@@ -168,15 +186,26 @@ def token_list(data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir",
 @serve_app.command("show")
 def serve_show(submission_id: int = typer.Argument(..., metavar="ID", help="The submission's id."),
                data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir", help=DATA_DIR_HELP),
-               db: str = typer.Option(None, "--db", help=DB_HELP)) -> None:
+               db: str = typer.Option(None, "--db", help=DB_HELP),
+               output: bool = typer.Option(False, "--output", help="Add what the agent printed, per job and attempt "
+                                                                   "(hidden suites' too).")) -> None:
     """The admin's view of a submission, as JSON: its hidden-suite jobs whole (errors, unit counts, every score)."""
-    from mewa_bench.service.models import Submission
-    from mewa_bench.service.routes.submissions import describe
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import Job, Submission
+    from mewa_bench.service.routes.submissions import describe, job_output
 
     def full(session):
         """The whole record, or None."""
         submission = session.get(Submission, submission_id)
-        return None if submission is None else describe(session, submission, full=True)
+        if submission is None:
+            return None
+        record = describe(session, submission, full=True)
+        if output:
+            settings = _settings(data_dir, db)
+            record["output"] = {job.board: job_output(settings, job.id) for job in
+                                session.scalars(select(Job).where(Job.submission_id == submission_id))}
+        return record
 
     try:
         record = _with_session(data_dir, db, full)

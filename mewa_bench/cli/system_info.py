@@ -1,4 +1,8 @@
-"""What `mewa-bench info` reports: package versions, env ids, Python and platform."""
+"""What `mewa-bench info` reports: package versions, the evaluation protocol, env ids, Python and platform.
+
+Protocol versions are numbered on their own (protocol 1, protocol 2), not by the package version: a
+results file records both, and only the protocol decides whether results are ranked together.
+"""
 
 from __future__ import annotations
 
@@ -21,8 +25,10 @@ def system_info() -> dict[str, str]:
     """Versions and platform facts, in display order."""
     from mewa_bench import __version__
     from mewa_bench.envs.registration import ENV_IDS
+    from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION
 
-    info = {"mewa-bench": __version__, "env ids": ", ".join(ENV_IDS)}
+    info = {"mewa-bench": __version__, "protocol": f"{PROTOCOL_VERSION} (results schema {SCHEMA_VERSION})",
+            "env ids": ", ".join(ENV_IDS)}
     info.update({name: package_version(name) for name in KEY_PACKAGES})
     info["python"] = f"{platform.python_version()} ({sys.executable})"
     info["platform"] = platform.platform()

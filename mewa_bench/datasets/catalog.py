@@ -1,6 +1,10 @@
 """The dataset catalog (SPEC section 8): a JSON file listing published datasets with URL, size and sha256.
 
-Format: `{"format_version": 1, "datasets": [entry, ...]}`; an entry has `name`, `version`, `suite`,
+Format: `{"format_version": 1, "datasets": [entry, ...], "evaluation_recordings": [entry, ...],
+"builds": [build, ...]}`. `datasets` lists training data only (`kind` "training": meta-train workers,
+never a test pair); `evaluation_recordings` lists recordings of the curated test pairs, for viewing
+only (training on them is training on the test set); `builds` records the sha256 of training
+datasets built locally with `mewa-bench datasets build` (too large to ship). An entry has `name`, `version`, `suite`,
 `policy`, `episodes`, `frames`, `size` (bytes of the archive), `sha256` (of the archive) and either
 `url` (http(s) or file URL of a .tar.gz) or `hf_repo_id` (a Hugging Face Hub dataset repo, optionally
 pinned by `hf_revision`; `size` and `sha256` are then optional, the Hub checks its own files). Other
@@ -24,6 +28,11 @@ NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")  # a dataset name becomes 
 SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
 URL_SCHEMES = ("http://", "https://", "file://")
 REQUIRED = {"name": str, "version": str, "suite": str, "policy": str, "episodes": int, "frames": int}
+TRAINING, EVALUATION_RECORDING = "training", "evaluation-recording"
+SECTIONS = {TRAINING: "datasets", EVALUATION_RECORDING: "evaluation_recordings"}  # kind -> catalog section
+EVALUATION_WARNING = ("an evaluation recording of the curated TEST pairs with the ranked protocol's seeds: for "
+                      "viewing only. Training on it is training on the test set; train on `kind: training` data "
+                      "(meta-train workers only), e.g. `mewa-bench datasets build narrow-v2-train-expert`.")
 
 
 class DatasetError(RuntimeError):
@@ -48,7 +57,17 @@ def default_catalog_path(checkout: Path = CHECKOUT_CATALOG, prefix: Path | None 
 
 def empty_catalog() -> dict[str, Any]:
     """A catalog without datasets."""
-    return {"format_version": CATALOG_FORMAT_VERSION, "datasets": []}
+    return {"format_version": CATALOG_FORMAT_VERSION, "datasets": [], "evaluation_recordings": []}
+
+
+def entry_kind(entry: dict[str, Any]) -> str:
+    """"training" only for an entry that says so; anything else is treated as an evaluation recording."""
+    return TRAINING if entry.get("kind") == TRAINING else EVALUATION_RECORDING
+
+
+def catalog_entries(content: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every downloadable entry: training data, then evaluation recordings."""
+    return list(content.get("datasets", [])) + list(content.get("evaluation_recordings", []))
 
 
 def _check_type(where: str, key: str, value: Any, kind: type) -> None:
@@ -64,7 +83,7 @@ def is_relative_path(url: str) -> bool:
 
 def resolve_relative_urls(content: dict[str, Any], base: Path) -> dict[str, Any]:
     """Entries whose url is relative to the catalog file get an absolute file:// URL."""
-    for entry in content["datasets"]:
+    for entry in catalog_entries(content):
         if "url" in entry and is_relative_path(entry["url"]):
             entry["url"] = (base / entry["url"]).resolve().as_uri()
     return content
@@ -104,12 +123,21 @@ def validate_catalog(content: Any, where: str) -> dict[str, Any]:
     """Check a catalog's structure and every entry; names+versions must be unique."""
     if not isinstance(content, dict) or not isinstance(content.get("datasets"), list):
         raise DatasetError(f"{where}: a catalog is a JSON object with a 'datasets' list")
+    for section in ("evaluation_recordings", "builds"):
+        if not isinstance(content.get(section, []), list):
+            raise DatasetError(f"{where}: {section!r} must be a list")
     if content.get("format_version") != CATALOG_FORMAT_VERSION:
         raise DatasetError(f"{where}: unsupported catalog format_version {content.get('format_version')!r} "
                            f"(this mewa-bench reads {CATALOG_FORMAT_VERSION})")
     seen: set[tuple[str, str]] = set()
-    for i, entry in enumerate(content["datasets"]):
-        validate_entry(entry, f"{where}: dataset #{i}")
+    for section in ("datasets", "evaluation_recordings"):
+        for i, entry in enumerate(content.get(section, [])):
+            validate_entry(entry, f"{where}: {section} #{i}")
+            wrong = EVALUATION_RECORDING if section == "datasets" else TRAINING
+            if entry.get("kind") == wrong:  # an entry without a kind (an older catalog) counts as not training
+                raise DatasetError(f"{where}: {section} #{i} {entry['name']!r} has kind {wrong!r}; 'datasets' holds "
+                                   "training data, 'evaluation_recordings' the recordings of test pairs")
+    for entry in catalog_entries(content):
         key = (entry["name"], entry["version"])
         if key in seen:
             raise DatasetError(f"{where}: {entry['name']} version {entry['version']} is listed twice")
@@ -146,20 +174,23 @@ def version_key(version: str) -> tuple:
 def dataset_info(catalog: dict[str, Any], name: str) -> dict[str, Any]:
     """The entry named `name` (its newest version), or `name@version`."""
     base, _, version = name.partition("@")
-    matches = [e for e in catalog["datasets"] if e["name"] == base and (not version or e["version"] == version)]
+    entries = catalog_entries(catalog)
+    matches = [e for e in entries if e["name"] == base and (not version or e["version"] == version)]
     if not matches:
-        known = sorted({f"{e['name']}@{e['version']}" for e in catalog["datasets"]})
+        known = sorted({f"{e['name']}@{e['version']}" for e in entries})
         raise DatasetError(f"dataset {name!r} is not in the catalog; known: {', '.join(known) or 'none'}")
     return max(matches, key=lambda e: version_key(e["version"]))
 
 
 def add_to_catalog(catalog_path: Path | str, entry: dict[str, Any]) -> dict[str, Any]:
-    """Add `entry` to a catalog file (created if missing), replacing the same name+version; atomic."""
+    """Add `entry` to its section of a catalog file (created if missing), replacing the same name+version; atomic."""
     catalog_path = Path(catalog_path)
     validate_entry(entry)
     catalog = load_catalog(catalog_path, resolve=False) if catalog_path.exists() else empty_catalog()
     same = lambda e: (e["name"], e["version"]) == (entry["name"], entry["version"])  # noqa: E731
-    datasets = catalog["datasets"]
+    for section in SECTIONS.values():  # an entry may change kind: drop it from the other section
+        catalog[section] = [e for e in catalog.get(section, []) if not same(e) or section == SECTIONS[entry_kind(entry)]]
+    datasets = catalog[SECTIONS[entry_kind(entry)]]
     index = next((i for i, e in enumerate(datasets) if same(e)), None)
     if index is None:
         datasets.append(dict(entry))
@@ -167,3 +198,8 @@ def add_to_catalog(catalog_path: Path | str, entry: dict[str, Any]) -> dict[str,
         datasets[index] = dict(entry)
     write_json_atomic(catalog_path, catalog)
     return catalog
+
+
+def recorded_build(catalog: dict[str, Any], name: str, version: str) -> dict[str, Any] | None:
+    """The catalog's record of a local training build (name, version, sha256, ...), if it has one."""
+    return next((b for b in catalog.get("builds", []) if (b.get("name"), b.get("version")) == (name, version)), None)

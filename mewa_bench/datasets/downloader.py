@@ -63,6 +63,7 @@ class Source:
     sha256: str | None = None
     episodes: int | None = None
     frames: int | None = None
+    kind: str | None = None  # the catalog's kind ("training" or "evaluation-recording")
 
 
 def is_url(text: str) -> bool:
@@ -96,7 +97,7 @@ def resolve_source(source: str, catalog: dict[str, Any] | None, sha256: str | No
         e = dataset_info(catalog, source)
         src = Source(name or e["name"], url=e.get("url"), hf_repo_id=e.get("hf_repo_id"),
                      revision=e.get("hf_revision"), size=e.get("size"), sha256=e.get("sha256"),
-                     episodes=e.get("episodes"), frames=e.get("frames"))
+                     episodes=e.get("episodes"), frames=e.get("frames"), kind=e.get("kind"))
     elif is_repo_id(source):
         src = Source(name or source.split("/")[1], hf_repo_id=source)
     else:
@@ -152,6 +153,7 @@ def _download_archive(src: Source, dest_dir: Path, progress: Progress | None) ->
             archive.unlink()
         root = dataset_root(unpacked, src.url)
         check_dataset(root, src, src.url)
+        check_training_content(root, src, src.url)
         path = install(root, dest_dir / src.name)
     return Downloaded(src.name, path, src.url, size, digest, verified=src.sha256 is not None)
 
@@ -287,6 +289,25 @@ def check_dataset(root: Path, src: Source, where: str) -> None:
             raise DatasetError(f"{where}: {INFO_FILE} has {key} = {info.get(key)!r}, the catalog says {expected}")
 
 
+def check_training_content(root: Path, src: Source, where: str) -> None:
+    """A training dataset (by its metadata or its catalog entry) is re-checked frame by frame before it is
+    installed: one curated worker or protocol luck key and it is refused (the previous copy stays)."""
+    from mewa_bench.datasets.catalog import TRAINING
+    from mewa_bench.datasets.training_data import MEWA_META_FILE, check_training_dataset
+    from mewa_bench.datasets.training_keys import TrainingDataError
+
+    try:
+        says_training = json.loads((root / MEWA_META_FILE).read_text()).get("kind") == TRAINING
+    except (OSError, json.JSONDecodeError):
+        says_training = False
+    if not (says_training or src.kind == TRAINING):
+        return
+    try:
+        check_training_dataset(root)
+    except TrainingDataError as e:
+        raise DatasetError(f"{where}: refused: {e}") from None
+
+
 def install(new: Path, target: Path) -> Path:
     """Move a verified dataset to `target`, replacing an existing copy; the old one is kept if the move fails."""
     old = None
@@ -328,5 +349,6 @@ def _download_hub(src: Source, dest_dir: Path) -> Downloaded:
         if not (local / INFO_FILE).is_file():
             raise DatasetError(f"{where}: not a LeRobot dataset ({INFO_FILE} not found)")
         check_dataset(local, src, where)
+        check_training_content(local, src, where)
         path = install(local, dest_dir / src.name)
     return Downloaded(src.name, path, src.hf_repo_id, None, None, verified=False)

@@ -90,14 +90,26 @@ def read_info(dataset_dir: Path) -> dict[str, Any]:
         raise DatasetError(f"{dataset_dir} is not a LeRobot dataset: cannot read {path}: {e}") from None
 
 
+TRAINING_FIELDS = ("dataset_id", "tier", "ref_min_score", "ref_max_score", "ref_known_worker_optimum", "ref_scale",
+                   "total_meta_episodes", "build_command", "mewa_bench_version")
+
+
 def _provenance(dataset_dir: Path) -> dict[str, Any]:
-    """Suite and policy hashes from the recorder's meta file, when present."""
+    """Kind, suite and policy hashes (and a training dataset's Minari-style fields) from meta/mewa.json.
+
+    Only a training dataset's own metadata makes an entry `kind: training`; a `record`ed dataset plays the
+    curated test pairs, so it is an evaluation recording."""
+    from mewa_bench.datasets.catalog import EVALUATION_RECORDING, EVALUATION_WARNING, TRAINING
+
     path = dataset_dir / MEWA_META_FILE
     if not path.is_file():
-        return {}
+        return {"kind": EVALUATION_RECORDING, "warning": EVALUATION_WARNING}
     meta = json.loads(path.read_text())
-    return {"suite_sha256": meta["suite"]["sha256"], "policy_sha256": meta["policy"]["sha256"],
-            "mewa_bench_version": meta["mewa_bench_version"]}
+    if meta.get("kind") == TRAINING:
+        return {"kind": TRAINING, "suite_sha256": meta["suite"]["sha256"], "policy_sha256": meta["behaviour"]["sha256"],
+                "eval_suite": meta["eval_env_spec"]["suite"], **{k: meta[k] for k in TRAINING_FIELDS}}
+    return {"kind": EVALUATION_RECORDING, "warning": EVALUATION_WARNING, "suite_sha256": meta["suite"]["sha256"],
+            "policy_sha256": meta["policy"]["sha256"], "mewa_bench_version": meta["mewa_bench_version"]}
 
 
 def pack_dataset(dataset_dir: Path | str, out_dir: Path | str, name: str, version: str, suite: str, policy: str,

@@ -53,6 +53,7 @@ class AugmentedChain:
     bad: np.ndarray  # int64 [B]
     bad_reward: np.ndarray  # int64 [B]
     action: np.ndarray  # int64 [B]: the colour handed over (for replays with coupled luck)
+    state: np.ndarray  # int64 [n]: the game state (table row) of each node
 
 
 @dataclass(frozen=True)
@@ -120,7 +121,8 @@ def augmented_chain(table: TransitionTable, policies: Sequence[Policy]) -> Augme
     cols = list(zip(*rows))
     ints = [np.array(c, dtype=np.int64) for c in cols]
     return AugmentedChain(np.array(roots, dtype=np.int64), np.array(depth, dtype=np.int64), ints[0],
-                          np.array(cols[1], dtype=np.float64), ints[2], ints[3], ints[4], ints[5], ints[6], ints[7])
+                          np.array(cols[1], dtype=np.float64), ints[2], ints[3], ints[4], ints[5], ints[6], ints[7],
+                          np.array([k[1] for k in keys], dtype=np.int64))
 
 
 def _merged_branches(chain: AugmentedChain, cls: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -41,7 +41,7 @@ ADAPTIVE_RATIO = 0.99
 # then its box sampler or its cover sampler with probability 1/2, 0.01 clear of the 0.05 grid.
 V2_MIN_BEST_RETURN = 0.5
 V2_MIN_DISTANCE = 0.2
-GAP_TARGETS = {"narrow-v2": 0.06, "wide-v2": 0.04}  # issue 11: non-adaptive gap the v2 suites must reach
+GAP_TARGETS = {"narrow-v2": 0.06, "wide-v2": 0.04}  # non-adaptive gap each v2 suite must reach
 V2_META_TRAIN = {"family_weights": [0.5, 0.5], "cover_weight": 0.5, "grid_step": GRID_STEP, "grid_clearance": 0.01}
 
 Progress = Callable[[str], None]

@@ -59,12 +59,13 @@ def _layout(table: TransitionTable, horizon: int) -> _Layout:
                    branching, kind[branching], table.progress[order].astype(np.int64), active)
 
 
-def _optimal_block(task: Task, layout: _Layout, workers: np.ndarray,
-                   actions: np.ndarray | None = None) -> np.ndarray:
+def _optimal_block(task: Task, layout: _Layout, workers: np.ndarray, actions: np.ndarray | None = None,
+                   queries: tuple["_Queries", np.ndarray] | None = None) -> np.ndarray:
     """Optimal raw return from the initial state for a block of workers [Wc, N] -> [Wc].
 
     With `actions` ([T + 1, S] in layout order, one worker), also the optimal action of every
-    state that can be reached with t steps left, in row t.
+    state that can be reached with t steps left, in row t. With `queries` (points, out), the optimal
+    action at each point (worker column, steps left, state) is written to `out`.
     """
     w_branch = workers.T[layout.mistake_type]
     arrival = np.append(np.asarray(task.rewards, dtype=np.float64), 0.0)[layout.progress][:, None]
@@ -81,6 +82,11 @@ def _optimal_block(task: Task, layout: _Layout, workers: np.ndarray,
         q[branching] += gap
         if actions is not None:
             actions[t, :n_active] = np.argmax(q.reshape(n_active, NUM_COLORS), axis=1)
+        if queries is not None and queries[0].bounds[t] < queries[0].bounds[t + 1]:
+            points, out = queries
+            here = slice(points.bounds[t], points.bounds[t + 1])
+            chosen = q.reshape(n_active, NUM_COLORS, -1)[points.position[here], :, points.worker[here]]  # [n, 4]
+            out[points.order[here]] = np.argmax(chosen, axis=1)  # ties: the lowest action
         np.max(q.reshape(n_active, NUM_COLORS, -1), axis=1, out=value[:n_active])
         np.add(value[:n_active], arrival[:n_active], out=after[:n_active])
     return value[0]  # the initial state is the only state at depth 0
@@ -97,6 +103,42 @@ def optimal_actions(task: Task, worker: np.ndarray | Sequence[float]) -> np.ndar
     out = np.empty_like(by_position)
     out[:, order] = by_position
     return out
+
+
+def optimal_actions_at(task: Task, workers: np.ndarray | Sequence, owner: np.ndarray, steps_left: np.ndarray,
+                       state: np.ndarray, chunk: int = CHUNK) -> tuple[np.ndarray, np.ndarray]:
+    """The known-worker optimal action at many (worker, steps left, table state) points, vectorised over
+    workers: `owner[i]` is the worker row of point i. Returns (actions int64 [Q], ties: the lowest action;
+    optimal raw returns float64 [W]). Each point must be reachable with its steps left (at most
+    T - steps_left steps from the start), as every state an episode visits is."""
+    arr = as_workers(workers, task.N)
+    table = transition_table(structural_task(task))
+    layout = _layout(table, task.T)
+    position = np.empty(table.n_states, dtype=np.int64)
+    position[np.argsort(state_depths(table), kind="stable")] = np.arange(table.n_states)
+    owner, steps_left = np.asarray(owner, dtype=np.int64), np.asarray(steps_left, dtype=np.int64)
+    if len(owner) and (steps_left.min() < 1 or steps_left.max() > task.T):
+        raise ValueError(f"steps left must lie in 1..{task.T}")
+    out = np.zeros(len(owner), dtype=np.int64)
+    raw = np.zeros(len(arr))
+    by_owner = np.argsort(owner, kind="stable")
+    edges = np.searchsorted(owner[by_owner], np.arange(0, len(arr) + chunk, chunk))
+    for b, start in enumerate(range(0, len(arr), chunk)):
+        points = by_owner[edges[b] : edges[b + 1]]
+        order = points[np.argsort(steps_left[points], kind="stable")]
+        bounds = np.searchsorted(steps_left[order], np.arange(task.T + 2))
+        queries = _Queries(order, bounds, position[np.asarray(state)[order]], owner[order] - start)
+        raw[start : start + chunk] = _optimal_block(task, layout, arr[start : start + chunk], queries=(queries, out))
+    return out, raw
+
+
+class _Queries(NamedTuple):
+    """Points (sorted by steps left) at which `_optimal_block` reports the optimal action."""
+
+    order: np.ndarray  # point index of each sorted entry
+    bounds: np.ndarray  # [T + 2]: entries with t steps left are bounds[t]:bounds[t + 1]
+    position: np.ndarray  # layout position of each sorted entry's state
+    worker: np.ndarray  # worker column of each sorted entry
 
 
 def _plan_block(task: Task, layout: _Layout, workers: np.ndarray, plan: np.ndarray) -> np.ndarray:

@@ -40,6 +40,7 @@ class ReplayChain:
     ok_reward: np.ndarray  # int64 [B]: reward id (sub-goal index; N = terminal, reward 0)
     bad: np.ndarray  # int64 [B]
     bad_reward: np.ndarray  # int64 [B]
+    state: np.ndarray  # int64 [n]: the game state (table row of the rules' table) of each node
 
 
 @lru_cache(maxsize=64)
@@ -50,7 +51,7 @@ def _cached_chain(structure: Task, policies: tuple[Policy, ...]) -> ReplayChain:
     first = np.concatenate([[0], np.cumsum(count)[:-1]])
     cum = np.cumsum(chain.prob) - np.repeat(np.cumsum(chain.prob)[first] - chain.prob[first], count)
     return ReplayChain(chain.roots, first, count, cum, chain.action, chain.x, chain.ok, chain.ok_reward,
-                       chain.bad, chain.bad_reward)
+                       chain.bad, chain.bad_reward, chain.state)
 
 
 def replay_chain(task: Task, policies: Sequence[Policy | str]) -> ReplayChain:

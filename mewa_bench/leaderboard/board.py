@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from mewa_bench.design.suites import Suite
 from mewa_bench.leaderboard.validate import Entry
+from mewa_bench.protocol.aggregate import Comparison
 
 AGENT, PRIVILEGED, REFERENCE = "agent", "privileged", "reference"
 # The suite's reference lines (keys of suite.summary["score"] and ["skill"]) and their labels.
@@ -50,22 +51,28 @@ class Row:
 
 @dataclass(frozen=True)
 class Board:
-    """A suite with its valid entries (best first) and its table rows."""
+    """A suite with its valid entries (best first), its checkpoint rows and its algorithms (best first)."""
 
     suite: Suite
     entries: tuple[Entry, ...]
     rows: tuple[Row, ...]
+    comparison: Comparison | None = None
+    algorithms: tuple = ()  # leaderboard.algorithms.AlgorithmRow
 
 
 def make_board(suite: Suite, entries: list[Entry], root_label: str) -> Board:
-    """Sort and rank the entries and merge in the reference lines, all by mean score."""
+    """Sort and rank the entries and merge in the reference lines, all by mean score; group them by algorithm."""
+    from mewa_bench.leaderboard.algorithms import algorithm_rows, compare_entries
+
     ordered = sorted(entries, key=lambda e: (-e.scores.mean.mean, e.agent, str(e.path)))
     ranks = competition_ranks([e.scores.mean.mean for e in ordered if not e.privileged])
     ranked = iter(ranks)
     rows = [entry_row(e, None if e.privileged else next(ranked), root_label) for e in ordered]
     rows += reference_rows(suite)
     rows.sort(key=lambda r: (-r.mean, _KIND_ORDER[r.kind], r.name, r.file))
-    return Board(suite, tuple(ordered), tuple(rows))
+    comparison = compare_entries(suite, ordered) if ordered else None
+    algorithms = algorithm_rows(suite, ordered, comparison) if comparison is not None else ()
+    return Board(suite, tuple(ordered), tuple(rows), comparison, algorithms)
 
 
 def competition_ranks(means: list[float]) -> list[int]:

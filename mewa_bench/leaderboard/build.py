@@ -1,6 +1,7 @@
 """`mewa-bench leaderboard`: validate every results file under `submissions/` and write the leaderboards.
 
-Per shipped suite: `<suite>.md`, `<suite>.csv` and `<suite>.png`; plus one `index.html`. Invalid
+Per shipped suite: `<suite>.md`, `<suite>.csv` (checkpoints), `<suite>.png` and `<suite>-algorithms.csv`;
+plus one `index.html`. Invalid
 results files are skipped and reported with the reason, never silently. The output depends only on
 the inputs (sorted iteration, no current timestamps), and every file is written atomically.
 """
@@ -12,6 +13,7 @@ from pathlib import Path
 
 from mewa_bench.design.suites import ALL_SUITES, load_suite
 from mewa_bench.files import write_atomic
+from mewa_bench.leaderboard import algorithm_tables
 from mewa_bench.leaderboard.board import Board, make_board
 from mewa_bench.leaderboard.plot import plot_curves
 from mewa_bench.leaderboard.render import csv_text, index_html, markdown
@@ -53,14 +55,16 @@ def collect(submissions_dir: Path) -> tuple[dict[str, list[Entry]], list[tuple[P
     return entries, invalid
 
 
-def write_board(board: Board, out_dir: Path) -> tuple[Path, Path, Path]:
-    """Write one suite's Markdown, CSV and PNG."""
+def write_board(board: Board, out_dir: Path) -> tuple[Path, Path, Path, Path]:
+    """Write one suite's Markdown, checkpoints CSV, PNG and algorithms CSV."""
     name = board.suite.name
     md, csv_path, png = out_dir / f"{name}.md", out_dir / f"{name}.csv", out_dir / f"{name}.png"
+    algorithms = out_dir / f"{name}-algorithms.csv"
     write_atomic(md, markdown(board, png.name))
     write_atomic(csv_path, csv_text(board))
+    write_atomic(algorithms, algorithm_tables.csv_text(board.algorithms))
     plot_curves(board, png)
-    return md, csv_path, png
+    return md, csv_path, png, algorithms
 
 
 def build_leaderboards(submissions_dir: Path, out_dir: Path) -> LeaderboardReport:
@@ -69,7 +73,7 @@ def build_leaderboards(submissions_dir: Path, out_dir: Path) -> LeaderboardRepor
     entries, invalid = collect(submissions_dir)
     boards = [make_board(load_suite(name), entries[name], submissions_dir.name) for name in ALL_SUITES]
     written: list[Path] = []
-    files: dict[str, tuple[str, str, str]] = {}
+    files: dict[str, tuple[str, ...]] = {}
     for board in boards:
         paths = write_board(board, out_dir)
         written += paths

@@ -1,4 +1,4 @@
-"""The adaptation-curve figure of a suite's leaderboard (like the paper's Fig. 4)."""
+"""The adaptation-curve figure of a suite's leaderboard (like the paper's Fig. 4): one line per algorithm."""
 
 from __future__ import annotations
 
@@ -15,8 +15,16 @@ _REFERENCE_STYLES = (("#000000", (0, (6, 2))), ("#555555", (0, (1, 1.5))), ("#33
                      ("#777777", (0, (3, 3))), ("#999999", (0, (6, 2, 1, 2, 1, 2))))
 
 
-def plot_curves(board: Board, path: Path) -> None:
-    """s_1..s_K per agent with its 95% CI band, the suite's reference lines dashed; written atomically."""
+_LINE_STYLES = ("-", "--", "-.", ":")
+
+
+def line_style(i: int) -> tuple[int, str]:
+    """(tab10 colour index, line style) of the i-th algorithm: no two of the first 40 share both."""
+    return i % 10, _LINE_STYLES[(i // 10) % len(_LINE_STYLES)]
+
+
+def curves_figure(board: Board):
+    """s_1..s_K per algorithm with its 95% CI band over training runs, the suite's reference lines dashed."""
     # Figure + Agg canvas directly: no pyplot, so the caller's global backend and state are untouched.
     from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -26,23 +34,31 @@ def plot_curves(board: Board, path: Path) -> None:
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     colors = colormaps["tab10"].colors
-    for i, entry in enumerate(board.entries):
-        curve = entry.scores.curve
-        x = np.arange(1, len(curve) + 1)
-        color = colors[i % len(colors)]
-        name = entry.agent.replace("$", r"\$")  # an agent's name is text, never mathtext
-        label = f"{name} (privileged)" if entry.privileged else name
-        ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=color, ls=":" if entry.privileged else "-",
-                label=label)
-        ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=color, alpha=0.2, lw=0)
-    k = len(board.entries[0].scores.curve) if board.entries else EPISODES_PER_PAIR
+    algorithms = board.comparison.algorithms if board.comparison is not None else ()
+    privileged = {r.algorithm for r in board.algorithms if r.privileged}
+    for i, algo in enumerate(algorithms):
+        x = np.arange(1, len(algo.curve) + 1)
+        color, style = line_style(i)
+        name = algo.algorithm.replace("$", r"\$")  # a name is text, never mathtext
+        label = f"{name} ({len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''})"
+        label += " (privileged)" if algo.algorithm in privileged else ""
+        ax.plot(x, [e.mean for e in algo.curve], marker="o", ms=3, color=colors[color], ls=style, label=label)
+        if algo.curve[0].low is not None:
+            ax.fill_between(x, [e.low for e in algo.curve], [e.high for e in algo.curve], color=colors[color],
+                            alpha=0.15, lw=0)
+    k = len(algorithms[0].curve) if algorithms else EPISODES_PER_PAIR
     for row, (grey, dashes) in zip(reference_rows(board.suite), _REFERENCE_STYLES):
         ax.axhline(row.mean, ls=dashes, lw=1.2, color=grey, label=f"{row.name} (exact)")
     ax.set_xticks(range(1, k + 1))
     ax.set_xlim(0.7, k + 0.3)
     ax.set_xlabel("episode k with the same hidden worker")
     ax.set_ylabel("score s_k (1 = max expected)")
-    ax.set_title(f"{board.suite.name}: adaptation curves (mean and 95% CI over pairs x seeds)")
+    ax.set_title(f"{board.suite.name}: adaptation curves per algorithm (mean, 95% CI over training runs)", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
-    save_png(fig, path)
+    return fig
+
+
+def plot_curves(board: Board, path: Path) -> None:
+    """The board's curve figure, written atomically as PNG."""
+    save_png(curves_figure(board), path)

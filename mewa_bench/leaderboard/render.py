@@ -6,6 +6,7 @@ import csv
 import html
 import io
 
+from mewa_bench.leaderboard import algorithm_tables
 from mewa_bench.leaderboard.board import PRIVILEGED, REFERENCE, Board, Row
 
 HEADER = ("rank", "agent", "mean score [95% CI]", "IQM", "s_1", "s_10", "adaptability [95% CI]",
@@ -22,13 +23,13 @@ SHORT_SHA = 12
 EXPLANATION = (
     ("score", "s_k = the normalised return of episode k divided by the pair's max-expected baseline (1.0 = as "
               "good as the best t-optimal policy that knows the worker), averaged over pairs x seeds. The mean "
-              "score averages s_1..s_10; 95% percentile bootstrap CIs resample seeds within each pair, recomputed "
-              "from each results file's units."),
+              "score averages s_1..s_10; 95% bootstrap CIs resample seeds within each pair (small-sample "
+              "corrected), recomputed from each results file's units."),
     ("adaptability", "mean(s_10 - s_1): how much an agent improves over the 10 episodes with the same "
                      "hidden worker."),
     ("protocol 2", "worker luck is coupled to each episode's seed and the reference policies are replayed on "
                    "the same seeds as control variates (unbiased, far less noise); CIs resample seeds within "
-                   "each pair. IQM: interquartile mean of per-unit scores. Verdicts: adapts = adaptability CI "
+                   "each pair. IQM: rliable's interquartile mean, over the pair means. Verdicts: adapts = adaptability CI "
                    "above 0; beats best fixed = the paired difference with the best fixed policy has its CI "
                    "above 0 (docs/protocol.md)."),
     ("skill", "(S - S_rts) / (1 - S_rts), with S the mean score and S_rts that of the random task-specific "
@@ -84,6 +85,9 @@ def suite_facts(board: Board, quote: str = "") -> str:
             f"what only adaptation can win).")
 
 
+CHECKPOINTS = ("One row per trained checkpoint (results file). Its CIs resample evaluation seeds within each pair: "
+               "they are conditional on that checkpoint and say nothing about another training run of the same "
+               "algorithm (the algorithms table above does).")
 NOTES = ("Reference rows are exact expected values computed from the suite (not sampled): fixed policies, "
          "so s_1 = s_10 and adaptability is 0.",
          "Privileged agents are told the worker; they are listed for comparison but not ranked (rank —).")
@@ -95,6 +99,9 @@ def markdown(board: Board, image_name: str) -> str:
         return "| " + " | ".join(v.replace("|", "\\|") for v in values) + " |"
 
     lines = [f"# Leaderboard: {board.suite.name}", "", suite_facts(board, "`"), ""]
+    if board.algorithms:
+        lines += ["## Algorithms", "", *algorithm_tables.markdown_lines(board.algorithms), ""]
+    lines += ["## Checkpoints", "", CHECKPOINTS, ""]
     lines += [md_row(list(HEADER)), "|" + "---|" * len(HEADER)]
     for row in board.rows:
         values = cells(row)
@@ -143,8 +150,8 @@ def _html_table(board: Board) -> list[str]:
     return out
 
 
-def index_html(boards: list[Board], files: dict[str, tuple[str, str, str]]) -> str:
-    """The static page: every suite's table and figure; `files` maps suite -> (md, csv, png) names."""
+def index_html(boards: list[Board], files: dict[str, tuple[str, ...]]) -> str:
+    """The static page: every suite's tables and figure; `files` maps suite -> (md, csv, png, ...) names."""
     out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
            "<title>MEWA leaderboards</title>", f"<style>{_CSS}</style>", "</head>", "<body>",
            "<h1>MEWA leaderboards</h1>", "<dl>"]
@@ -153,10 +160,16 @@ def index_html(boards: list[Board], files: dict[str, tuple[str, str, str]]) -> s
     out.append("</dl>")
     out += [f"<p>{html.escape(n)}</p>" for n in NOTES]
     for board in boards:
-        md, csv_name, png = (html.escape(f) for f in files[board.suite.name])
+        md, csv_name, png = (html.escape(f) for f in files[board.suite.name][:3])
         name = html.escape(board.suite.name)
-        out += [f'<h2 id="{name}">{name}</h2>', f"<p>{html.escape(suite_facts(board))}</p>", *_html_table(board),
+        out += [f'<h2 id="{name}">{name}</h2>', f"<p>{html.escape(suite_facts(board))}</p>"]
+        if board.algorithms:
+            out += ["<h3>Algorithms</h3>", *algorithm_tables.html_table(board.algorithms),
+                    f"<p>{html.escape(algorithm_tables.EXPLANATION)}</p>"]
+        out += ["<h3>Checkpoints</h3>", f"<p>{html.escape(CHECKPOINTS)}</p>", *_html_table(board),
                 f'<p><img src="{png}" alt="Adaptation curves on {name}"></p>',
-                f'<p>Also as <a href="{md}">Markdown</a> and <a href="{csv_name}">CSV</a>.</p>']
+                f'<p>Also as <a href="{md}">Markdown</a> and <a href="{csv_name}">CSV</a>'
+                + "".join(f' (algorithms: <a href="{html.escape(f)}">CSV</a>)' for f in files[board.suite.name][3:])
+                + ".</p>"]
     out += ["</body>", "</html>", ""]
     return "\n".join(out)

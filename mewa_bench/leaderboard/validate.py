@@ -23,6 +23,7 @@ from mewa_bench.design.suites import ALL_SUITES, Suite, SuiteError, load_suite
 from mewa_bench.game.normalise import normalised_return
 from mewa_bench.protocol.results import PROTOCOL_VERSION, ResultsError, read_results
 from mewa_bench.protocol.config import EPISODES_PER_PAIR, default_seeds, env_seed
+from mewa_bench.protocol.run_info import RunInfoError, read_run_info
 from mewa_bench.protocol.scoring import Scores, episode_scores, score_units
 
 TOLERANCE = 1e-9
@@ -46,6 +47,7 @@ class Entry:
     date: str
     package_version: str
     agent_sha256: str
+    algorithm: str = ""  # run.json's algorithm, or the folder's name (a one-run algorithm)
 
 
 def find_results_files(submissions_dir: Path) -> Iterator[Path]:
@@ -107,9 +109,14 @@ def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
     scores = verified_scores(units, suite, results["scores"])
     agent = results["agent"]
     _check_agent_file(path, agent)
+    try:
+        algorithm = read_run_info(path.parent).algorithm
+    except RunInfoError as e:
+        raise InvalidResults(str(e)) from None
     return Entry(suite=suite.name, agent=str(agent["name"]), path=path, privileged=agent.get("privileged") is True,
                  scores=scores, seeds=seeds, date=finished_date(results),
-                 package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""))
+                 package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""),
+                 algorithm=algorithm)
 
 
 def check_run(results: dict[str, Any], suites: SuiteCache, expected_seeds: tuple[int, ...] | None = None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +34,16 @@ def log_path(log_dir: Path, stem: str, kind: str) -> Path:
     return path
 
 
-def make_log_sinks(kinds: tuple[str, ...], log_dir: Path, stem: str) -> list[Any]:
-    """One sink per requested kind, writing into `log_dir`."""
+def make_log_sinks(kinds: tuple[str, ...], log_dir: Path, stem: str, pairs: Collection[int] | None = None,
+                   seeds: Collection[int] | None = None) -> list[Any]:
+    """One sink per requested kind, writing into `log_dir`; with `pairs` or `seeds`, of those units only."""
     from mewa_bench.logs.mcap_log import McapSink
     from mewa_bench.logs.rerun_log import RerunSink
+    from mewa_bench.logs.subset import UnitSubset
 
     makers = {"mcap": McapSink, "rerun": RerunSink}
     log_dir.mkdir(parents=True, exist_ok=True)
-    return [makers[k](log_path(log_dir, stem, k)) for k in kinds]
+    sinks = [makers[k](log_path(log_dir, stem, k)) for k in kinds]
+    if pairs is None and seeds is None:
+        return sinks
+    return [UnitSubset(sink, pairs, seeds) for sink in sinks]

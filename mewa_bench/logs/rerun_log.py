@@ -31,6 +31,7 @@ REWARD, RETURN, ACTION, PROGRESS = "mewa/reward", "mewa/return", "mewa/action", 
 OBSERVATION, CAMERA, EVENTS, EPISODES = "mewa/observation", "mewa/camera", "mewa/events", "mewa/episodes"
 NORMALISED_RETURN, SCORE = "mewa/normalised_return", "mewa/score"
 EPISODE_WINDOW = 100  # steps shown around the time cursor: T, the longest episode
+BATCH_STEPS = 16_384  # env steps per batch of columns: chunks of about 1 MB (the observations) on disk
 
 
 def _rerun() -> Any:
@@ -43,13 +44,12 @@ def recording_id(run: RunInfo) -> str:
     return str(uuid.UUID(hex=run_digest(run)[:32]))
 
 
-def time_columns(g: np.ndarray, pair: int, episode: int) -> list[Any]:
-    """The three timelines of rows at global steps `g`, all in one episode."""
+def time_columns(g: np.ndarray, pair: np.ndarray, episode: np.ndarray) -> list[Any]:
+    """The three timelines of rows at global steps `g`, with each row's pair and episode."""
     rr = _rerun()
 
-    n = len(g)
-    return [rr.TimeColumn("global_step", sequence=g), rr.TimeColumn("pair", sequence=np.full(n, pair)),
-            rr.TimeColumn("episode", sequence=np.full(n, episode))]
+    return [rr.TimeColumn("global_step", sequence=g), rr.TimeColumn("pair", sequence=pair),
+            rr.TimeColumn("episode", sequence=episode)]
 
 
 class _ArrowBatch:
@@ -110,12 +110,47 @@ def default_blueprint(camera: bool) -> Any:
                          collapse_panels=False)
 
 
-class RerunSink:
-    """Streams a run's trajectories to one `.rrd` file, flushed after every unit and finished at `close()`."""
+class _StepRows:
+    """The steps of some units as rows: global step, pair, seed and episode of each (empty episodes left out)."""
 
-    def __init__(self, path: Path | str) -> None:
+    def __init__(self, units: list[UnitRecord], first_step: int) -> None:
+        self.episodes: list[tuple[UnitRecord, EpisodeRecord, int]] = []  # (unit, episode, its first global step)
+        g = first_step
+        for unit in units:
+            for ep in unit.episodes:
+                if ep.steps:
+                    self.episodes.append((unit, ep, g))
+                g += len(ep.steps)
+        self.steps = [s for _, ep, _ in self.episodes for s in ep.steps]
+        lengths = [len(ep.steps) for _, ep, _ in self.episodes]
+        self.g = np.array([g0 + i for _, ep, g0 in self.episodes for i in range(len(ep.steps))], dtype=np.int64)
+        self.pair = np.repeat(np.array([u.pair for u, _, _ in self.episodes], dtype=np.int64), lengths)
+        self.seed = np.repeat(np.array([u.seed for u, _, _ in self.episodes], dtype=np.int64), lengths)
+        self.episode = np.repeat(np.array([ep.episode for _, ep, _ in self.episodes], dtype=np.int64), lengths)
+
+    def indexes(self, rows: np.ndarray | None = None) -> list[Any]:
+        """The three timelines of the given rows (default: every step)."""
+        rows = np.arange(len(self.steps)) if rows is None else rows
+        return time_columns(self.g[rows], self.pair[rows], self.episode[rows])
+
+    def episode_ends(self) -> np.ndarray:
+        """The row of each episode's last step."""
+        return np.cumsum([len(ep.steps) for _, ep, _ in self.episodes]) - 1
+
+
+class RerunSink:
+    """Streams a run's trajectories to one `.rrd` file and finishes it at `close()`.
+
+    Units are sent in batches of at least `batch_steps` env steps, one column per entity and batch, so a
+    recording has a few large chunks (what the viewer loads fast) instead of several per episode; what
+    is still pending is sent at `close()`, which the runner calls when a run fails or is interrupted.
+    """
+
+    def __init__(self, path: Path | str, batch_steps: int = BATCH_STEPS) -> None:
         self.path = Path(path)
-        self.global_step = 0
+        self.batch_steps = batch_steps
+        self.global_step = 0  # global step of the first pending unit's first step
+        self._pending: list[UnitRecord] = []
         self._rec: Any = None
 
     def start(self, run: RunInfo) -> None:
@@ -135,18 +170,22 @@ class RerunSink:
         rec.flush()
 
     def add_unit(self, unit: UnitRecord) -> None:
-        """Log one finished unit and flush it to the file."""
+        """Queue one finished unit; send the queue and flush it to the file once it holds a batch."""
         if self._rec is None:
             raise RuntimeError(f"{self.path}: RerunSink.add_unit() before start() or after close()")
-        for ep in unit.episodes:
-            self._log_episode(unit, ep)
-            self.global_step += len(ep.steps)
-        self._rec.flush()
+        self._pending.append(unit)
+        if sum(len(ep.steps) for u in self._pending for ep in u.episodes) >= self.batch_steps:
+            self._send_pending()
+            self._rec.flush()
 
     def close(self) -> None:
-        """Flush and finish the file (footer included); safe to call more than once."""
-        rec, self._rec = self._rec, None
-        if rec is not None:
+        """Send what is pending, flush and finish the file (footer included); safe to call more than once."""
+        if self._rec is None:
+            return
+        try:
+            self._send_pending()
+        finally:
+            rec, self._rec = self._rec, None
             try:
                 rec.flush()
             finally:
@@ -161,45 +200,52 @@ class RerunSink:
         for path, name in ((ACTION, "action (colour)"), (NORMALISED_RETURN, "normalised return"), (SCORE, "score")):
             self._rec.log(path, rr.SeriesPoints(names=name, markers="circle"), static=True)
 
-    def _set_time(self, g: int, pair: int, episode: int) -> None:
-        """Point all three timelines at one step."""
-        for timeline, value in zip(TIMELINES, (g, pair, episode)):
-            self._rec.set_time(timeline, sequence=int(value))
-
-    def _log_episode(self, unit: UnitRecord, ep: EpisodeRecord) -> None:
-        """Per-step data as columns (one call per entity), camera frames, then the episode's outcome."""
+    def _send_pending(self) -> None:
+        """The pending units' steps and episode outcomes, one column per entity."""
         rr = _rerun()
 
-        rec, steps = self._rec, ep.steps
-        if not steps:
+        units, self._pending = self._pending, []
+        rows = _StepRows(units, self.global_step)
+        self.global_step += sum(len(ep.steps) for u in units for ep in u.episodes)
+        if not rows.steps:
             return
-        g = np.arange(self.global_step, self.global_step + len(steps))
-        rewards = np.array([s.reward for s in steps], dtype=np.float64)
-        series = {REWARD: rewards, RETURN: np.cumsum(rewards),
+        rec, steps, indexes = self._rec, rows.steps, rows.indexes()
+        rewards = [np.array([s.reward for s in ep.steps], dtype=np.float64) for _, ep, _ in rows.episodes]
+        series = {REWARD: np.concatenate(rewards), RETURN: np.concatenate([np.cumsum(r) for r in rewards]),
                   ACTION: np.array([s.action for s in steps], dtype=np.float64),
                   PROGRESS: np.array([s.progress for s in steps], dtype=np.float64)}
         for path, values in series.items():
-            rec.send_columns(path, indexes=time_columns(g, unit.pair, ep.episode),
-                             columns=rr.Scalars.columns(scalars=values))
+            rec.send_columns(path, indexes=indexes, columns=rr.Scalars.columns(scalars=values))
         observations = np.stack([np.asarray(s.next_obs, dtype=np.float32) for s in steps])
-        rec.send_columns(OBSERVATION, indexes=time_columns(g, unit.pair, ep.episode),
-                         columns=[bar_chart_column(observations)])
-        events = [(gi, event_message(unit.pair, unit.seed, ep.episode, s.step, e), "WARN" if is_warning(e) else "INFO")
-                  for gi, s in zip(g, steps) for e in s.events]
+        rec.send_columns(OBSERVATION, indexes=indexes, columns=[bar_chart_column(observations)])
+        events = [(i, event_message(rows.pair[i], rows.seed[i], rows.episode[i], s.step, e),
+                   "WARN" if is_warning(e) else "INFO") for i, s in enumerate(steps) for e in s.events]
         if events:
             at, texts, levels = zip(*events)
-            rec.send_columns(EVENTS, indexes=time_columns(np.array(at), unit.pair, ep.episode),
+            rec.send_columns(EVENTS, indexes=rows.indexes(np.array(at)),
                              columns=rr.TextLog.columns(text=texts, level=levels))
-        for gi, step in zip(g, steps):
+        for i, step in enumerate(steps):  # SAPIEN mode; the batcher packs these frames into few chunks
             if step.image is not None:
-                self._set_time(gi, unit.pair, ep.episode)
+                for timeline, values in zip(TIMELINES, (rows.g, rows.pair, rows.episode)):
+                    rec.set_time(timeline, sequence=int(values[i]))
                 rec.log(CAMERA, rr.Image(step.image))
-        self._set_time(g[-1], unit.pair, ep.episode)
-        rec.log(NORMALISED_RETURN, rr.Scalars(float(ep.normalised_return)))
-        rec.log(SCORE, rr.Scalars(float(ep.score)))
-        rec.log(EPISODES, rr.TextLog(
-            f"pair {unit.pair} seed {unit.seed} ep {ep.episode}: return {ep.episode_return:.3f}, normalised "
-            f"{ep.normalised_return:.3f}, score {ep.score:.3f}, {len(steps)} steps", level=rr.TextLogLevel.INFO))
+        self._send_outcomes(rows)
+
+    def _send_outcomes(self, rows: _StepRows) -> None:
+        """Each episode's normalised return, score and summary line, at its last step."""
+        rr = _rerun()
+
+        ends = rows.episode_ends()
+        indexes = rows.indexes(ends)
+        episodes = [(unit, ep) for unit, ep, _ in rows.episodes]
+        self._rec.send_columns(NORMALISED_RETURN, indexes=indexes, columns=rr.Scalars.columns(
+            scalars=np.array([ep.normalised_return for _, ep in episodes], dtype=np.float64)))
+        self._rec.send_columns(SCORE, indexes=indexes, columns=rr.Scalars.columns(
+            scalars=np.array([ep.score for _, ep in episodes], dtype=np.float64)))
+        texts = [f"pair {u.pair} seed {u.seed} ep {ep.episode}: return {ep.episode_return:.3f}, normalised "
+                 f"{ep.normalised_return:.3f}, score {ep.score:.3f}, {len(ep.steps)} steps" for u, ep in episodes]
+        self._rec.send_columns(EPISODES, indexes=indexes,
+                               columns=rr.TextLog.columns(text=texts, level=["INFO"] * len(texts)))
 
     def __enter__(self) -> RerunSink:
         return self

@@ -17,6 +17,8 @@ from typing import Any, Callable, NamedTuple, Protocol
 import numpy as np
 
 OPTIONAL_METHODS = ("reset_task", "observe", "end_episode")
+ONE_LANE_FACTORIES = ("make_agent", "Agent")
+VECTOR_FACTORIES = ("make_vector_agent", "VectorAgent")
 
 _module_numbers = itertools.count()
 
@@ -60,6 +62,55 @@ class Agent(Protocol):
         """The episode is over: the point where gradient-based agents adapt."""
 
 
+class Transitions(NamedTuple):
+    """One env step of several lanes as a vector agent sees it: the fields of `Transition`, stacked.
+
+    `obs` and `next_obs` are float32 [n, 18] (in sapien mode dicts of stacked arrays: "state"
+    [n, 18], "image" [n, H, W, 3]); `action` int64 [n]; `reward` float64 [n]; `terminated` and
+    `truncated` bool [n]. Row i belongs to the i-th lane of the call's `lanes`.
+    """
+
+    obs: Any
+    action: np.ndarray
+    reward: np.ndarray
+    next_obs: Any
+    terminated: np.ndarray
+    truncated: np.ndarray
+
+
+class VectorAgent(Protocol):
+    """A batched agent: one object plays every lane of an agent process (SPEC section 6, batched agents).
+
+    The runner plays several (pair, seed) units side by side, one per lane (0..num_lanes-1). Every
+    call names the lanes it concerns (`lanes`, int64 [n], ascending, no repeats) and carries one row
+    per lane; a lane's calls come in the one-lane order (reset_task, then per episode act/observe
+    per step and end_episode), and lanes are independent: a lane's actions must depend only on its
+    own calls. Lanes that are not playing a step (finished, ending an episode, starting a task) are
+    simply absent from `act`, so a batch shrinks as units run out. A lane that gets `reset_task`
+    has begun a new hidden pair (its seed is the protocol's per-unit seed); the agent never learns
+    which pair. Per step the runner makes at most one call of each kind, in the order observe,
+    end_episode, reset_task, act.
+
+    Only `act` is required. An agent file defines `make_vector_agent(observation_space,
+    action_space, num_lanes, **kwargs)` or a class `VectorAgent` taking the same arguments (the
+    spaces are one lane's); see `load_lanes`. A file may define both a one-lane and a vector agent:
+    the runner then plays the vector one.
+    """
+
+    def reset_task(self, lanes: np.ndarray, seeds: np.ndarray) -> None:
+        """New hidden pairs begin on `lanes`: forget what was learnt there; `seeds` int64 [n]."""
+
+    def act(self, lanes: np.ndarray, observations: Any) -> np.ndarray:
+        """Actions (an integer array [n], each in 0..num_actions-1) for observations [n, 18] of `lanes`."""
+        ...
+
+    def observe(self, lanes: np.ndarray, transitions: Transitions) -> None:
+        """The outcome of the last action of each of `lanes` (after every step, the episode's last one included)."""
+
+    def end_episode(self, lanes: np.ndarray) -> None:
+        """The episodes of `lanes` are over: the point where gradient-based agents adapt."""
+
+
 class AgentLoadError(ValueError):
     """An agent file could not be loaded; the message names the file and what was wrong."""
 
@@ -76,7 +127,17 @@ def load_agent(path: str | Path, observation_space: Any, action_space: Any,
     """
     file = Path(path)
     kwargs = _agent_kwargs(file, agent_args, checkpoint)
-    factory, factory_name = _find_factory(file, _import_file(file))
+    module = _import_file(file)
+    if _find_factory(file, module, required=False) is None and \
+            _find_factory(file, module, VECTOR_FACTORIES, required=False) is not None:
+        vector_agent = load_lanes(path, observation_space, action_space, 1, agent_args, checkpoint)
+        return SingleLane(vector_agent)
+    return _build(file, *_find_factory(file, module), observation_space, action_space, kwargs)
+
+
+def _build(file: Path, factory: Callable[..., Any], factory_name: str, observation_space: Any, action_space: Any,
+           kwargs: dict[str, str]) -> Agent:
+    """One one-lane agent from its factory, checked."""
     try:
         agent = factory(observation_space, action_space, **kwargs)
     except (Exception, SystemExit) as exc:
@@ -85,6 +146,130 @@ def load_agent(path: str | Path, observation_space: Any, action_space: Any,
                              f"{_exception_summary(exc)}") from exc
     _check_methods(file, agent, factory_name)
     return agent
+
+
+def load_lanes(path: str | Path, observation_space: Any, action_space: Any, num_lanes: int,
+               agent_args: dict[str, str] | None = None, checkpoint: str | None = None) -> list[Any] | Any:
+    """What plays `num_lanes` lanes of the agent file at `path`: its vector agent, or a list of agents.
+
+    A file with `make_vector_agent` (or else a class `VectorAgent`) gets one object built as
+    `make_vector_agent(observation_space, action_space, num_lanes, **agent_args, checkpoint=...)`;
+    otherwise `num_lanes` independent one-lane agents are built as `load_agent` would (a list).
+    Raises AgentLoadError for any failure.
+    """
+    file = Path(path)
+    kwargs = _agent_kwargs(file, agent_args, checkpoint)
+    module = _import_file(file)
+    vector = _find_factory(file, module, VECTOR_FACTORIES, required=False)
+    if vector is None:
+        return [_build(file, *_find_factory(file, module), observation_space, action_space, kwargs)
+                for _ in range(num_lanes)]
+    factory, name = vector
+    try:
+        agent = factory(observation_space, action_space, num_lanes, **kwargs)
+    except (Exception, SystemExit) as exc:
+        arguments = "".join(f", {key}={value!r}" for key, value in kwargs.items())
+        raise AgentLoadError(f"{file}: {name}(observation_space, action_space, num_lanes={num_lanes}{arguments}) "
+                             f"raised {_exception_summary(exc)}") from exc
+    _check_methods(file, agent, name, "act(lanes, observations)")
+    return agent
+
+
+def is_vector_agent(loaded: list[Any] | Any) -> bool:
+    """True if `load_lanes` gave a vector agent (not a list of one-lane agents)."""
+    return not isinstance(loaded, list)
+
+
+class SingleLane:
+    """A one-lane agent (the protocol's `Agent`) playing lane 0 of a vector agent."""
+
+    _LANE = np.zeros(1, dtype=np.int64)
+
+    def __init__(self, vector_agent: Any) -> None:
+        self.vector_agent = vector_agent
+
+    def reset_task(self, seed: int | None = None) -> None:
+        """A new pair begins (seed 0 when the runner gives none)."""
+        method = getattr(self.vector_agent, "reset_task", None)
+        if method is not None:
+            method(self._LANE, np.array([0 if seed is None else seed], dtype=np.int64))
+
+    def act(self, observation: Any) -> int:
+        """The vector agent's action for this one observation."""
+        return self.vector_agent.act(self._LANE, stack_observations([observation]))[0]
+
+    def observe(self, transition: Transition) -> None:
+        """Pass the step on as a batch of one."""
+        method = getattr(self.vector_agent, "observe", None)
+        if method is not None:
+            method(self._LANE, stack_transitions([transition]))
+
+    def end_episode(self) -> None:
+        """End lane 0's episode."""
+        method = getattr(self.vector_agent, "end_episode", None)
+        if method is not None:
+            method(self._LANE)
+
+
+def stack_observations(observations: list[Any]) -> Any:
+    """Observations of several lanes as one array [n, ...], or a dict of such arrays (sapien mode)."""
+    first = observations[0]
+    if isinstance(first, dict):
+        return {key: np.stack([o[key] for o in observations]) for key in first}
+    return np.stack(observations)
+
+
+def stack_transitions(transitions: list[Transition]) -> Transitions:
+    """Transitions of several lanes as one `Transitions` of stacked arrays."""
+    return Transitions(stack_observations([t.obs for t in transitions]),
+                       np.array([t.action for t in transitions], dtype=np.int64),
+                       np.array([t.reward for t in transitions], dtype=np.float64),
+                       stack_observations([t.next_obs for t in transitions]),
+                       np.array([t.terminated for t in transitions], dtype=bool),
+                       np.array([t.truncated for t in transitions], dtype=bool))
+
+
+class InvalidActions(ValueError):
+    """A vector agent's act() answer is not `count` valid actions; `row` is the first bad row, if one is."""
+
+    def __init__(self, message: str, row: int | None = None) -> None:
+        super().__init__(message)
+        self.row = row
+
+
+def check_actions(value: object, count: int, num_actions: int) -> np.ndarray:
+    """`value` as int64 [count] if it is a 1-D integer array (or list, or torch tensor) of actions in
+    0..num_actions-1; InvalidActions otherwise."""
+    try:
+        array = value if isinstance(value, np.ndarray) else np.asarray(_to_numpy(value))
+    except Exception as exc:  # e.g. a ragged list
+        raise InvalidActions(f"act() returned {reprlib.repr(value)}, not an array of actions ({exc})") from None
+    if array.shape != (count,):
+        raise InvalidActions(f"act() returned {_shape_text(array)} for {count} lane{'s' if count != 1 else ''}: "
+                             f"expected an integer array of shape ({count},)")
+    if array.dtype.kind not in "iu":
+        if array.dtype.kind == "f" and np.isnan(array).any():
+            row = int(np.flatnonzero(np.isnan(array))[0])
+            raise InvalidActions(f"act() returned NaN in a {array.dtype} array: expected integer actions", row)
+        raise InvalidActions(f"act() returned an array of dtype {array.dtype}: expected integer actions "
+                             f"(e.g. int64)")
+    bad = np.flatnonzero((array < 0) | (array >= num_actions))
+    if bad.size:
+        raise InvalidActions(f"act() returned action {array[bad[0]].item()!r}, out of range: expected an int in "
+                             f"0..{num_actions - 1}", int(bad[0]))
+    return array.astype(np.int64, copy=False)
+
+
+def _to_numpy(value: object) -> object:
+    """A torch tensor as a numpy array (without importing torch); anything else as it is."""
+    numpy = getattr(value, "numpy", None)
+    if callable(numpy) and type(value).__module__.startswith("torch"):
+        return value.detach().cpu().numpy()  # type: ignore[attr-defined]
+    return value
+
+
+def _shape_text(array: np.ndarray) -> str:
+    return "a scalar" if array.ndim == 0 else f"shape {array.shape}"
 
 
 def agent_sha256(path: str | Path) -> str:
@@ -144,24 +329,27 @@ def _import_file(file: Path) -> ModuleType:
     return module
 
 
-def _find_factory(file: Path, module: ModuleType) -> tuple[Callable[..., Any], str]:
-    """The module's `make_agent`, or else its class `Agent`, with the name it goes by."""
-    for name in ("make_agent", "Agent"):
+def _find_factory(file: Path, module: ModuleType, names: tuple[str, str] = ONE_LANE_FACTORIES,
+                  required: bool = True) -> tuple[Callable[..., Any], str] | None:
+    """The module's factory function (`make_agent`), or else its class (`Agent`), with the name it goes by."""
+    for name in names:
         factory = getattr(module, name, None)
-        if factory is None or factory is Agent:  # our Protocol, imported for type hints, is no agent
+        if factory is None or factory is Agent or factory is VectorAgent:  # our Protocols are no agents
             continue
         if not callable(factory):
             raise AgentLoadError(f"{file}: {name} is a {type(factory).__name__}, not a function or class")
         return factory, name
+    if not required:
+        return None
     raise AgentLoadError(f"{file} defines neither a function make_agent(observation_space, action_space) "
-                         "nor a class Agent")
+                         "nor a class Agent (nor a batched make_vector_agent / VectorAgent)")
 
 
-def _check_methods(file: Path, agent: object, factory_name: str) -> None:
+def _check_methods(file: Path, agent: object, factory_name: str, act: str = "act(observation)") -> None:
     """Check that the agent has a callable `act` and that its optional methods present are callable."""
     if not callable(getattr(agent, "act", None)):
         what = "None" if agent is None else f"a {type(agent).__name__} object"
-        raise AgentLoadError(f"{file}: {factory_name}(...) returned {what}, which has no act(observation) method")
+        raise AgentLoadError(f"{file}: {factory_name}(...) returned {what}, which has no {act} method")
     for name in OPTIONAL_METHODS:
         method = getattr(agent, name, None)
         if method is not None and not callable(method):

@@ -23,6 +23,12 @@ DEFAULT_SEED_COUNTS = {"narrow": 256, "wide": 96}
 OTHER_SUITES_SEED_COUNT = 50  # suites of your own: no power analysis behind this one
 
 
+def default_seeds_text() -> str:
+    """The default seed counts in words, for help texts: "256 on narrow-*, 96 on wide-*, 50 on suites of your own"."""
+    counts = ", ".join(f"{n} on {family}-*" for family, n in DEFAULT_SEED_COUNTS.items())
+    return f"{counts}, {OTHER_SUITES_SEED_COUNT} on suites of your own"
+
+
 def suite_family(suite_name: str) -> str:
     """'narrow-v2' -> 'narrow': the name without its version suffix (a hidden suite's too: 'narrow-v2-hidden')."""
     return re.sub(r"-v\d+(-hidden)?$", "", suite_name)

@@ -24,6 +24,7 @@ even if the agent catches the error it got.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -42,12 +43,14 @@ import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Callable, Protocol, Self, Sequence
+from typing import Any, Callable, Iterator, Protocol, Self, Sequence
 
 import numpy as np
 from gymnasium import spaces
 
-from mewa_bench.protocol.agent import OPTIONAL_METHODS, AgentLoadError, Transition, check_action, load_agent
+from mewa_bench.protocol.agent import (OPTIONAL_METHODS, AgentLoadError, InvalidActions, Transition, check_action,
+                                       check_actions, is_vector_agent, load_lanes, stack_observations,
+                                       stack_transitions)
 
 DEFAULT_TIME_LIMIT = 10.0
 DEFAULT_LOAD_TIME_LIMIT = 60.0
@@ -87,17 +90,21 @@ Call = tuple[int, int, tuple]  # (lane, operation, arguments) of one call in a b
 
 @dataclass(frozen=True)
 class Launcher:
-    """How a sandbox starts the agent process: `prefix` + [python, "-c", `entry`, pipe fds, memory limit].
+    """How a sandbox starts the agent process: `prefix` + [python, *`flags`, "-c", `entry`, pipe fds, memory limit].
 
     `entry` is the code the child runs (it must end by calling `_child_main()`), `environment` the
-    whole environment it gets. Exit codes above 128 count as deaths by signal (code - 128), the
-    convention of bwrap and shells, which stand between the parent and the agent process.
+    whole environment it gets, `flags` the interpreter's options (e.g. -I), `output` a file
+    descriptor that takes the process's stdout and stderr (None: this process's own). Exit codes
+    above 128 count as deaths by signal (code - 128), the convention of bwrap and shells, which
+    stand between the parent and the agent process.
     """
 
     prefix: tuple[str, ...]
     entry: str
     environment: tuple[tuple[str, str], ...]
     python: str = sys.executable
+    flags: tuple[str, ...] = ()
+    output: int | None = None
 
 
 class AgentRunner(Protocol):
@@ -161,10 +168,10 @@ def make_agent_runner(path: str | Path, observation_space: Any, action_space: sp
     if launcher is not None:
         raise ValueError("a sandboxed agent (launcher) must run isolated, not in-process")
     try:
-        agents = [load_agent(path, observation_space, action_space, agent_args, checkpoint) for _ in range(lanes)]
+        agent = _load_lanes(path, observation_space, action_space, agent_args, checkpoint, lanes, None)
     except AgentLoadError as exc:
         raise AgentError("load", str(exc)) from exc
-    return InProcessAgent(agents[0], action_space, name=Path(path).name, more_lanes=agents[1:])
+    return InProcessAgent(agent, lanes, name=Path(path).name)
 
 
 class _AgentCalls:
@@ -204,10 +211,10 @@ class _AgentCalls:
         else:
             self._call("reset_task", self._reset_task, *args)
 
-    def answer(self, operation: int, args: tuple) -> bytes:
-        """Carry out one call of a batch; the reply token."""
+    def answer(self, operation: int, args: tuple) -> int | None:
+        """Carry out one call of a batch; the action for a step, None otherwise."""
         if operation == _STEP:
-            return _ACTION + b"%d" % self.step(*args)
+            return self.step(*args)
         if operation == _RESET_TASK:
             self.reset_task(*args)
         elif operation == _END_EPISODE:
@@ -216,7 +223,7 @@ class _AgentCalls:
             self.observe(*args)
         else:
             raise AgentError("crash", f"unknown request {operation!r}")
-        return _OK
+        return None
 
     def observe(self, transition: Transition) -> None:
         """The agent's observe(transition)."""
@@ -235,24 +242,169 @@ class _AgentCalls:
             raise self._failure(method, exc) from None
 
     def _failure(self, method: str, exc: BaseException) -> AgentError:
-        """An AgentError naming the exception and where in the agent's code it was raised."""
-        try:
-            detail = str(exc)
-        except Exception:
-            detail = "(its message could not be printed)"
-        if len(detail) > _MAX_EXCEPTION_TEXT:
-            detail = detail[:_MAX_EXCEPTION_TEXT] + "..."
-        message = f"agent {self.name}: {method}() raised {type(exc).__name__}" + (f": {detail}" if detail else "")
-        kind = "exception"
-        if isinstance(exc, MemoryError):
-            kind = "memory"
-            limit = "" if self._memory_limit is None else f" (its limit is {_gib(self._memory_limit)})"
-            message += f"\nthe agent ran out of memory{limit}"
-        frames = [frame for frame in traceback.extract_tb(exc.__traceback__) if frame.filename != __file__]
-        if frames:
-            message += ("\nagent traceback (most recent call last):\n"
-                        + "".join(traceback.format_list(frames[-_TRACEBACK_FRAMES:])).rstrip())
-        return AgentError(kind, message)
+        return _exception_error(self.name, method, exc, self._memory_limit)
+
+
+def _exception_error(name: str, method: str, exc: BaseException, memory_limit: int | None,
+                     lanes: str = "") -> AgentError:
+    """An AgentError naming the exception and where in the agent's code it was raised."""
+    try:
+        detail = str(exc)
+    except Exception:
+        detail = "(its message could not be printed)"
+    if len(detail) > _MAX_EXCEPTION_TEXT:
+        detail = detail[:_MAX_EXCEPTION_TEXT] + "..."
+    message = f"agent {name}: {method}(){lanes} raised {type(exc).__name__}" + (f": {detail}" if detail else "")
+    kind = "exception"
+    if isinstance(exc, MemoryError):
+        kind = "memory"
+        limit = "" if memory_limit is None else f" (its limit is {_gib(memory_limit)})"
+        message += f"\nthe agent ran out of memory{limit}"
+    frames = [frame for frame in traceback.extract_tb(exc.__traceback__) if frame.filename != __file__]
+    if frames:
+        message += ("\nagent traceback (most recent call last):\n"
+                    + "".join(traceback.format_list(frames[-_TRACEBACK_FRAMES:])).rstrip())
+    return AgentError(kind, message)
+
+
+Batch = tuple[list[Call], np.ndarray | None, np.ndarray | None]  # a batch as `_columns` sends it
+
+
+class _Lanes:
+    """Independent one-lane agents, one per lane, answering a batch call by call."""
+
+    def __init__(self, agents: Sequence[object], num_actions: int, name: str, memory_limit: int | None) -> None:
+        self.name = name
+        self.calls = [_AgentCalls(agent, num_actions, name, memory_limit) for agent in agents]
+
+    def answer(self, operation: int, args: tuple) -> int | None:
+        """One call on lane 0 (the runner's one-lane methods)."""
+        return self.calls[0].answer(operation, args)
+
+    def answer_batch(self, batch: Batch, time_limit: float | None) -> list[int | None]:
+        """Carry out a batch's calls in order, each within `time_limit` seconds; AgentError.index: which failed."""
+        calls, observations, previous = batch
+        replies = []
+        for index, (lane, call, args) in enumerate(calls):
+            if call == _STEP_ROW:
+                call, args = _STEP, _step_arguments(args, observations, previous)
+            with _call_guard(self.name, index, time_limit, CALL_NAMES.get(call, "a call")):
+                replies.append(self.calls[lane].answer(call, args))
+        return replies
+
+
+class _VectorCalls:
+    """A vector agent answering a batch: its per-lane calls grouped into at most one call of each kind,
+    in the order observe, end_episode, reset_task, act, with arrays in and an action array out."""
+
+    def __init__(self, agent: object, num_actions: int, name: str, memory_limit: int | None) -> None:
+        self.name = name
+        self._num_actions = num_actions
+        self._memory_limit = memory_limit
+        self._act: Callable[..., object] = agent.act  # type: ignore[attr-defined]
+        self._reset_task, self._observe, self._end_episode = (getattr(agent, method, None) or _no_op
+                                                              for method in OPTIONAL_METHODS)
+
+    def answer(self, operation: int, args: tuple) -> int | None:
+        """One call on lane 0 (the runner's one-lane methods), as a batch of one."""
+        return self.answer_batch(_columns([(0, operation, args)]), None)[0]
+
+    def answer_batch(self, batch: Batch, time_limit: float | None) -> list[int | None]:
+        """Carry out a batch as grouped vector calls, each within `time_limit` seconds; the actions of its
+        steps (None for the other calls). AgentError.index: the batch position of the lane blamed."""
+        calls, observations, previous = batch
+        observed: list[tuple[int, int, Transition]] = []  # (batch position, lane, transition)
+        ending: list[tuple[int, int]] = []
+        resetting: list[tuple[int, int, Any, int]] = []  # (position, lane, hidden, seed)
+        acting: list[tuple[int, int, Any]] = []  # (position, lane, observation)
+        for index, (lane, call, args) in enumerate(calls):
+            if call == _STEP_ROW:
+                call, args = _STEP, _step_arguments(args, observations, previous)
+            if call == _STEP:
+                transition, observation = args
+                if transition is not None:
+                    observed.append((index, lane, transition))
+                acting.append((index, lane, observation))
+            elif call == _END_EPISODE:
+                if args[0] is not None:
+                    observed.append((index, lane, args[0]))
+                ending.append((index, lane))
+            elif call == _OBSERVE:
+                observed.append((index, lane, args[0]))
+            elif call == _RESET_TASK:
+                hidden, seed = (tuple(args) + (None, None))[:2]
+                resetting.append((index, lane, hidden, 0 if seed is None else seed))
+            else:
+                raise AgentError("crash", f"unknown request {call!r}")
+        replies: list[int | None] = [None] * len(calls)
+        if observed:
+            self._call("observe", [i for i, _, _ in observed], time_limit, self._observe,
+                       _lane_array([lane for _, lane, _ in observed]), stack_transitions([t for _, _, t in observed]))
+        if ending:
+            self._call("end_episode", [i for i, _ in ending], time_limit, self._end_episode,
+                       _lane_array([lane for _, lane in ending]))
+        if resetting:
+            hidden = [h for _, _, h, _ in resetting]
+            extra = {} if all(h is None for h in hidden) else {"hidden": hidden}
+            self._call("reset_task", [i for i, *_ in resetting], time_limit, self._reset_task,
+                       _lane_array([lane for _, lane, _, _ in resetting]),
+                       np.array([seed for *_, seed in resetting], dtype=np.int64), **extra)
+        if acting:
+            positions = [i for i, _, _ in acting]
+            actions = self._call("act", positions, time_limit, self._act, _lane_array([lane for _, lane, _ in acting]),
+                                 stack_observations([o for _, _, o in acting]))
+            try:
+                actions = check_actions(actions, len(acting), self._num_actions)
+            except InvalidActions as exc:
+                blamed = positions[0 if exc.row is None else exc.row]
+                raise AgentError("invalid_action", f"agent {self.name}: {exc}", blamed) from None
+            for position, action in zip(positions, actions.tolist()):
+                replies[position] = action
+        return replies
+
+    def _call(self, method: str, positions: list[int], time_limit: float | None, function: Callable[..., object],
+              *args: Any, **kwargs: Any) -> object:
+        """One vector call within the time limit; a failure blames the first lane of the call."""
+        lanes = f" for {len(positions)} lane{'s' if len(positions) != 1 else ''}"
+        with _call_guard(self.name, positions[0], time_limit, f"{method}(){lanes}"):
+            try:
+                return function(*args, **kwargs)
+            except (Exception, SystemExit) as exc:
+                raise _exception_error(self.name, method, exc, self._memory_limit, lanes) from None
+
+
+@contextlib.contextmanager
+def _call_guard(name: str, index: int, time_limit: float | None, call: str) -> Iterator[None]:
+    """Run one call of a batch within `time_limit` seconds (interval timer), its errors tagged with `index`,
+    failing it too when the agent broke a sandbox rule meanwhile."""
+    try:
+        if time_limit is not None:
+            signal.setitimer(signal.ITIMER_REAL, time_limit)
+        yield
+    except _CallTimeout:
+        raise AgentError("timeout", f"agent {name}: {call} did not finish within the time limit of {time_limit:g} s; "
+                                    "the agent process was killed", index) from None
+    except AgentError as err:
+        raise (_violation(name, index) if _VIOLATIONS else AgentError(err.kind, str(err), index)) from None
+    finally:
+        if time_limit is not None:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+    if _VIOLATIONS:
+        raise _violation(name, index)
+
+
+def _lane_array(lanes: list[int]) -> np.ndarray:
+    return np.array(lanes, dtype=np.int64)
+
+
+def _load_lanes(path: str | Path, observation_space: Any, action_space: spaces.Discrete, agent_args: dict | None,
+                checkpoint: str | None, lanes: int, memory_limit: int | None) -> _Lanes | _VectorCalls:
+    """What answers batches for the agent file: its vector agent, or one agent per lane (AgentLoadError)."""
+    loaded = load_lanes(path, observation_space, action_space, lanes, agent_args, checkpoint)
+    name, num_actions = Path(path).name, _num_actions(action_space)
+    if is_vector_agent(loaded):
+        return _VectorCalls(loaded, num_actions, name, memory_limit)
+    return _Lanes(loaded, num_actions, name, memory_limit)
 
 
 class _FailureTracking:
@@ -280,45 +432,29 @@ class _FailureTracking:
 
 
 class InProcessAgent(_FailureTracking):
-    """Runs an agent object in this process, for debugging (--in-process).
+    """Runs an agent file's agents (one per lane, or its vector agent) in this process, for debugging (--in-process).
 
     Same interface and error types as IsolatedAgent, but no time or memory limit is enforced (a
     hanging agent hangs the evaluation) and the agent shares this process, env included.
     """
 
-    def __init__(self, agent: object, action_space: spaces.Discrete, name: str = "agent",
-                 more_lanes: Sequence[object] = ()) -> None:
+    def __init__(self, agent: _Lanes | _VectorCalls, lanes: int, name: str = "agent") -> None:
         self.agent = agent
         self.name = name
-        self._calls = _AgentCalls(agent, _num_actions(action_space), name, memory_limit=None)
-        self._lanes = [self._calls] + [_AgentCalls(a, _num_actions(action_space), name, None) for a in more_lanes]
-
-    @property
-    def lanes(self) -> int:
-        """How many independent agent objects this runner holds."""
-        return len(self._lanes)
+        self.lanes = lanes
 
     def batch(self, calls: Sequence[Call]) -> list[int | None]:
         """Carry out one call per lane; actions for steps, None otherwise (AgentError.index: which call failed)."""
         self._check_usable()
-        replies: list[int | None] = []
-        for i, (lane, operation, args) in enumerate(calls):
-            try:
-                token = self._lanes[lane].answer(operation, args)
-            except AgentError as err:
-                self._failure = AgentError(err.kind, str(err), i)
-                raise self._failure from None
-            replies.append(int(token[1:]) if token[:1] == _ACTION else None)
-        return replies
-
-    def step(self, transition: Transition | None, observation: Any) -> int:
-        """Observe the previous step's `transition` (None on an episode's first step), then act."""
-        self._check_usable()
         try:
-            return self._calls.step(transition, observation)
+            return self.agent.answer_batch(_columns(calls), None)
         except AgentError as err:
             self._failure = err
             raise
+
+    def step(self, transition: Transition | None, observation: Any) -> int:
+        """Observe the previous step's `transition` (None on an episode's first step), then act."""
+        return self._guarded(_STEP, transition, observation)
 
     def act(self, observation: Any) -> int:
         """The agent's action for `observation`."""
@@ -326,23 +462,23 @@ class InProcessAgent(_FailureTracking):
 
     def reset_task(self, hidden: dict | None = None, seed: int | None = None) -> None:
         """A new hidden task-worker pair begins (`hidden` reveals it: privileged runs only)."""
-        self._guarded(self._calls.reset_task, hidden, seed)
+        self._guarded(_RESET_TASK, hidden, seed)
 
     def observe(self, transition: Transition) -> None:
         """Report one step's outcome to the agent."""
-        self._guarded(self._calls.observe, transition)
+        self._guarded(_OBSERVE, transition)
 
     def end_episode(self, final_transition: Transition | None = None) -> None:
         """Observe the episode's last `final_transition` (unless None), then end the episode."""
-        self._guarded(self._calls.end_episode, final_transition)
+        self._guarded(_END_EPISODE, final_transition)
 
-    def _guarded(self, call: Callable[..., None], *args: Any) -> None:
+    def _guarded(self, operation: int, *args: Any) -> Any:
         self._check_usable()
         try:
-            call(*args)
+            return self.agent.answer(operation, args)
         except AgentError as err:
-            self._failure = err
-            raise
+            self._failure = AgentError(err.kind, str(err))
+            raise self._failure from None
 
 
 class IsolatedAgent(_FailureTracking):
@@ -377,8 +513,10 @@ class IsolatedAgent(_FailureTracking):
         child_read, parent_write = os.pipe()
         try:
             self._process = subprocess.Popen(
-                [*prefix, python, "-c", entry, str(child_read), str(child_write), str(memory_limit or 0)],
-                pass_fds=(child_read, child_write), stdin=subprocess.DEVNULL, env=environment)
+                [*prefix, python, *(launcher.flags if launcher else ()), "-c", entry, str(child_read), str(child_write),
+                 str(memory_limit or 0)], pass_fds=(child_read, child_write), stdin=subprocess.DEVNULL, env=environment,
+                stdout=launcher.output if launcher else None,
+                stderr=subprocess.STDOUT if launcher and launcher.output is not None else None)
         except BaseException:
             for fd in (parent_read, child_write, child_read, parent_write):
                 os.close(fd)
@@ -569,9 +707,19 @@ def _stop_process(process: subprocess.Popen, fds: tuple[int, ...]) -> None:
         process.wait()
 
 
+AGENT_THREADS = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+
+def with_agent_threads(environment: dict[str, str]) -> dict[str, str]:
+    """`environment` with one compute thread for the agent's torch/OpenMP/BLAS unless the user set a number:
+    the runner already runs one agent process per core (--jobs), and on a busy machine a library's
+    default of one thread per core made a 64-lane forward pass about 10x slower."""
+    return {**AGENT_THREADS, **environment}
+
+
 def _child_environment() -> dict[str, str]:
     """The parent's environment, with this copy of mewa_bench first on the child's import path."""
-    environment = dict(os.environ)
+    environment = with_agent_threads(dict(os.environ))
     environment["PYTHONPATH"] = os.pathsep.join(filter(None, [_PACKAGE_ROOT, environment.get("PYTHONPATH")]))
     return environment
 
@@ -620,54 +768,42 @@ def _child_main() -> None:
     sys.argv = sys.argv[:1]  # the pipe numbers are none of the agent's business
     name = Path(path).name
     try:
-        agents = [load_agent(path, observation_space, action_space, agent_args, checkpoint) for _ in range(lanes)]
+        agent = _load_lanes(path, observation_space, action_space, agent_args, checkpoint, lanes, memory_limit or None)
     except AgentLoadError as exc:
         _write_frame(write_fd, _error_reply(_violation(name) if _VIOLATIONS else AgentError("load", str(exc))))
         return
     if _VIOLATIONS:  # the agent caught the error its sandbox raised
         _write_frame(write_fd, _error_reply(_violation(name)))
         return
-    calls = [_AgentCalls(agent, _num_actions(action_space), name, memory_limit or None) for agent in agents]
     signal.signal(signal.SIGALRM, _raise_call_timeout)
     _write_frame(write_fd, _READY)
     while (request := reader.read()) is not None:
         try:
-            reply = _answer(calls, pickle.loads(request), name)
+            reply = _answer(agent, pickle.loads(request), name)
         except AgentError as err:
             reply = _error_reply(err)
         _write_frame(write_fd, reply)
 
 
-def _answer(calls: list[_AgentCalls], request: tuple, name: str) -> bytes:
+def _answer(agent: _Lanes | _VectorCalls, request: tuple, name: str) -> bytes:
     """Carry out one request on the agent (lane 0) or a batch of calls on the lanes; the reply's bytes."""
     operation = request[0]
     if operation != _BATCH:
         try:
-            reply = calls[0].answer(operation, request[1:])
+            reply = agent.answer(operation, request[1:])
         except AgentError as err:
             raise (_violation(name) if _VIOLATIONS else err) from None
         if _VIOLATIONS:
             raise _violation(name)
-        return reply
+        return _reply_token(reply)
     _, batch, observations, previous, time_limit = request
-    tokens = []
-    for index, (lane, call, args) in enumerate(batch):
-        if call == _STEP_ROW:
-            call, args = _STEP, _step_arguments(args, observations, previous)
-        try:
-            if time_limit is not None:
-                signal.setitimer(signal.ITIMER_REAL, time_limit)
-            tokens.append(calls[lane].answer(call, args))
-        except _CallTimeout:
-            raise AgentError("timeout", f"agent {name}: {CALL_NAMES.get(call, 'a call')} did not finish within the "
-                                        f"time limit of {time_limit:g} s; the agent process was killed", index) from None
-        except AgentError as err:
-            raise (_violation(name, index) if _VIOLATIONS else AgentError(err.kind, str(err), index)) from None
-        finally:
-            signal.setitimer(signal.ITIMER_REAL, 0)
-        if _VIOLATIONS:
-            raise _violation(name, index)
-    return _BATCHED + b",".join(tokens)
+    replies = agent.answer_batch((batch, observations, previous), time_limit)
+    return _BATCHED + b",".join(map(_reply_token, replies))
+
+
+def _reply_token(reply: int | None) -> bytes:
+    """A call's reply on the wire: A<action> for a step, K for the other calls."""
+    return _OK if reply is None else _ACTION + b"%d" % reply
 
 
 def _columns(calls: Sequence[Call]) -> tuple[list[Call], np.ndarray | None, np.ndarray | None]:

@@ -1,12 +1,15 @@
 """The results file of an evaluation run (JSON, schema-versioned; SPEC section 6).
 
-Layout (schema 2, protocol 2; schema-1 files of protocol 1 still load and are shown as such):
+Layout (schema 3, protocol 2; schema-2 files of protocol 2 read the same, schema-1 files of protocol 1 still
+load and are shown as such):
 - `schema_version`, `protocol_version`, `complete` (false while the run is in progress);
 - `agent`: name, file, sha256, privileged, agent_args, checkpoint;
 - `suite`: name, version, sha256; `env`: id, version, mode; `package_version`;
 - `seeds`, `episodes_per_pair`, `isolation` (isolated, time_limit, memory_limit);
 - `units`: one per (pair, seed), sorted: pair, seed, task, env_seeds (= the episodes' luck keys),
   returns, normalised_returns, lengths, scores (raw: normalised return / the pair's max-expected);
+  schema 3 stores them as compressed typed columns (`protocol.unit_columns`), schema 2 as a JSON list;
+  `read_results` and `validate_structure` give the list of unit dicts either way;
 - `scores` (when complete; `protocol.scoring`): curve s_1..s_K, mean, iqm, adaptability, skill
   (control-variate adjusted, with 95% stratified-bootstrap CIs, null when not estimable),
   verdicts, comparisons with the reference lines, the raw (unadjusted) estimates, control-variate
@@ -27,14 +30,16 @@ from typing import Any
 from mewa_bench.design.references import summarise
 from mewa_bench.design.suites import Suite
 from mewa_bench.envs.mewa_env import ENV_VERSION
-from mewa_bench.files import write_json_atomic
+from mewa_bench.files import json_text, write_atomic
 from mewa_bench.protocol.agent import agent_sha256
 from mewa_bench.protocol.config import EvalConfig, agent_name
 from mewa_bench.protocol.scoring import score_units
+from mewa_bench.protocol.unit_columns import ColumnError, decode_units, encode_units
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 PROTOCOL_VERSION = 2
-SUPPORTED = {1: 1, 2: 2}  # schema version -> its protocol version
+SUPPORTED = {1: 1, 2: 2, 3: 2}  # schema version -> its protocol version
+COLUMNAR = 3  # the first schema whose units are columns
 VOLATILE_FIELDS = ("timing", "machine", "execution")
 _REQUIRED = ("schema_version", "protocol_version", "complete", "agent", "suite", "env", "package_version",
              "seeds", "episodes_per_pair", "units")
@@ -52,8 +57,18 @@ def unit_key(unit: dict[str, Any]) -> tuple[int, int]:
 
 def write_results(path: Path, results: dict[str, Any]) -> None:
     """Write a results file atomically (units sorted), so a good file is never half-written."""
-    results = {**results, "units": sorted(results["units"], key=unit_key)}
-    write_json_atomic(path, results)
+    write_atomic(path, results_text(results, str(path)))
+
+
+def results_text(results: dict[str, Any], where: str = "results") -> str:
+    """The text of a results file (units sorted; schema 3: as columns): the same results give the same bytes."""
+    units = sorted(results["units"], key=unit_key)
+    if results.get("schema_version") == COLUMNAR:
+        try:
+            units = encode_units(units, results["episodes_per_pair"], results["suite"], where)
+        except ColumnError as e:
+            raise ResultsError(str(e)) from None
+    return json_text({**results, "units": units})
 
 
 def read_results(path: Path) -> dict[str, Any]:
@@ -62,21 +77,21 @@ def read_results(path: Path) -> dict[str, Any]:
         results = json.loads(Path(path).read_text())
     except OSError as e:
         raise ResultsError(f"{path}: cannot read results file: {e.strerror}") from None
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ResultsError(f"{path}: not valid JSON: {e}") from None
-    validate_structure(results, str(path))
-    return results
+    return validate_structure(results, str(path))
 
 
-def validate_structure(results: Any, where: str) -> None:
-    """Check the schema of a results dict (not its agreement with a suite)."""
+def validate_structure(results: Any, where: str) -> dict[str, Any]:
+    """Check the schema of a results dict (not its agreement with a suite); returns it with its units as
+    the list of unit dicts (a schema-3 file's columns decoded: a new dict, the given one is left as it was)."""
     try:
-        _validate(results, where)
+        return _validate(results, where)
     except (TypeError, KeyError, AttributeError) as e:  # a field of the wrong type
         raise ResultsError(f"{where}: malformed results ({type(e).__name__}: {e})") from None
 
 
-def _validate(results: Any, where: str) -> None:
+def _validate(results: Any, where: str) -> dict[str, Any]:
     if not isinstance(results, dict):
         raise ResultsError(f"{where}: a results file must be a JSON object")
     missing = [k for k in _REQUIRED if k not in results]
@@ -92,6 +107,10 @@ def _validate(results: Any, where: str) -> None:
         if key not in results["suite"]:
             raise ResultsError(f"{where}: suite.{key} is missing")
     k = results["episodes_per_pair"]
+    if schema >= COLUMNAR:
+        results = {**results, "units": _decoded_units(results, where)}
+    elif not isinstance(results["units"], list):
+        raise ResultsError(f"{where}: units must be a list in schema {schema}")
     for i, unit in enumerate(results["units"]):
         absent = [f for f in _UNIT_FIELDS if f not in unit]
         if absent:
@@ -102,6 +121,20 @@ def _validate(results: Any, where: str) -> None:
                                    f"{len(unit[f])} entries, expected {k}")
     if results["complete"] and "scores" not in results:
         raise ResultsError(f"{where}: a complete results file must have scores")
+    return results
+
+
+def _decoded_units(results: dict[str, Any], where: str) -> list[dict[str, Any]]:
+    """A schema-3 file's unit dicts, from its columns (env seeds derived from its suite hash where not stored)."""
+    k, suite_hash = results["episodes_per_pair"], results["suite"]["sha256"]
+    if not isinstance(k, int) or isinstance(k, bool) or not 1 <= k <= 1000:
+        raise ResultsError(f"{where}: episodes_per_pair must be a whole number in 1..1000, got {k!r}")
+    if not isinstance(suite_hash, str):
+        raise ResultsError(f"{where}: suite.sha256 must be a string, got {suite_hash!r}")
+    try:
+        return decode_units(results["units"], k, suite_hash, where)
+    except ColumnError as e:
+        raise ResultsError(str(e)) from None
 
 
 def stable_view(results: dict[str, Any]) -> dict[str, Any]:
@@ -154,6 +187,8 @@ def resume_from(path: Path, fresh: dict[str, Any]) -> dict[str, Any]:
         if old.get(key) != fresh.get(key):
             raise ResultsError(f"{path}: cannot resume: {key} differs from this run "
                                f"({old.get(key)!r} in the file, {fresh.get(key)!r} now)")
+    if old["protocol_version"] == PROTOCOL_VERSION:
+        old["schema_version"] = SCHEMA_VERSION  # a run of this protocol goes on in the current layout
     return old
 
 

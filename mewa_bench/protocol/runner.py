@@ -31,7 +31,8 @@ from mewa_bench.protocol.results import ResultsError, finish, new_results, resum
 from mewa_bench.protocol.scoring import episode_score
 from mewa_bench.protocol.trajectory import BackgroundSinks, EpisodeRecord, RunInfo, StepRecord, TrajectorySink, UnitRecord
 
-WRITE_INTERVAL = 1.0  # seconds between writes of the results file during a run
+WRITE_INTERVAL = 1.0  # least seconds between writes of the results file during a run
+WRITE_SHARE = 0.1  # and at most this share of the run's time spent writing it (a big run's file takes a while)
 
 
 class EvaluationError(RuntimeError):
@@ -248,17 +249,19 @@ def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
     progress(total - len(todo), total)
     start = time.perf_counter()
 
-    last_write = [time.perf_counter(), 0]  # when the file was last written, and with how many units
+    last_write = [time.perf_counter(), 0, WRITE_INTERVAL]  # when the file was last written, with how many units, gap
 
     def save() -> None:
+        began = time.perf_counter()
         write_results(out, results)
-        last_write[:] = [time.perf_counter(), len(results["units"])]
+        now = time.perf_counter()
+        last_write[:] = [now, len(results["units"]), max(WRITE_INTERVAL, (now - began) * (1 / WRITE_SHARE - 1))]
 
     def record(unit: dict[str, Any], seconds: float, trajectory: UnitRecord | None) -> None:
         results["units"].append(unit)
         results["timing"]["units"][f"{unit['pair']}/{unit['seed']}"] = round(seconds, 4)
-        if time.perf_counter() - last_write[0] >= WRITE_INTERVAL:
-            save()  # at most every WRITE_INTERVAL seconds while running, and whatever happens at the end
+        if time.perf_counter() - last_write[0] >= last_write[2]:
+            save()  # spaced while running (WRITE_INTERVAL, WRITE_SHARE), and whatever happens at the end
         writers.add_unit(trajectory)
         progress(len(results["units"]), total)
 

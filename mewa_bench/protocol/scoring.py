@@ -15,16 +15,23 @@ Protocol 2 removes most of the luck from these numbers without changing their ex
    the choice never looks at the unit it adjusts, so E[adjusted] = E[s] exactly.
 3. *Statistics for a frozen suite.* The pairs are fixed, so confidence intervals come from a
    bootstrap that resamples seeds within each pair (stratified), with its seed and size recorded.
-   Reported beside the mean: the interquartile mean (IQM) of per-unit scores, paired comparisons
-   with the reference lines (difference of means, probability of improvement on the same seeds)
-   and two verdicts: *adapts* (adaptability CI above 0) and *beats the best fixed policy*.
+   The interval is the small-sample-corrected standard-error one (`bootstrap_interval`): the
+   bootstrap's standard deviation times sqrt(n / (n - 1)) (n seeds per pair: the bootstrap's
+   variance is (n - 1) / n of the unbiased one) times Student's t quantile on the pooled degrees
+   of freedom. Reported beside the mean: the interquartile mean (IQM, as rliable defines it: the
+   25% trimmed mean of the pair means, which the control variates leave unbiased), paired
+   comparisons with the reference lines (difference of means, probability of improvement on the
+   same seeds) and two verdicts: *adapts* (adaptability CI above 0) and *beats the best fixed policy*.
 A CI needs at least two seeds in every pair; with fewer it is reported as unknown (null), never as
-a zero-width interval.
+a zero-width interval. Below MIN_SEEDS_COVERED seeds per pair the scores carry a warning: the
+coverage of the intervals was measured to hold from there (tests/test_interval_coverage.py).
+These CIs are conditional on the evaluated checkpoint; training-run variance is `protocol.aggregate`'s.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any, Sequence
 
 import numpy as np
@@ -37,6 +44,7 @@ from mewa_bench.game.normalise import episode_score, normalised_return, skill_of
 BOOTSTRAP_SEED = 20231105
 BOOTSTRAP_SAMPLES = 2000
 CONFIDENCE = 0.95
+MIN_SEEDS_COVERED = 16  # seeds per pair from which the within-run intervals' coverage was measured near 95%
 CV_MIN_OTHER_SEEDS = 2  # other seeds of a pair needed to choose a control variate for a unit
 CV_DECIMALS = 12  # variances are compared after rounding, so ties do not depend on float noise
 EQUAL_TOLERANCE = 1e-9  # two realised scores closer than this count as a tie (probability 1/2)
@@ -94,13 +102,17 @@ class Scores:
 
     curve: tuple[Estimate, ...]  # s_1..s_K, control-variate adjusted
     mean: Estimate  # mean over the K episodes
-    iqm: Estimate  # interquartile mean of the per-unit mean scores
+    iqm: Estimate  # rliable's IQM: the 25% trimmed mean of the pair means
     adaptability: Estimate  # mean(s_K - s_1)
     skill: Estimate  # (S - S_rts) / (1 - S_rts)
     raw: dict[str, Any]  # the same without control variates: curve means, mean, adaptability
     comparisons: dict[str, Comparison]
     units: int
     control_variates: dict[str, Any]  # which references were used, how often
+    pairs: tuple[int, ...] = ()  # the pairs played, in order
+    pair_curves: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), compare=False, repr=False)  # [P, K]
+    seeds_per_pair: int = 0
+    warning: str = ""  # set when the intervals are not known to cover (too few seeds per pair)
 
     @property
     def verdicts(self) -> dict[str, bool]:
@@ -115,7 +127,8 @@ class Scores:
                 "verdicts": self.verdicts, "comparisons": {k: c.to_dict() for k, c in self.comparisons.items()},
                 "raw": self.raw, "control_variates": self.control_variates, "units": self.units,
                 "bootstrap": {"seed": BOOTSTRAP_SEED, "samples": BOOTSTRAP_SAMPLES, "confidence": CONFIDENCE,
-                              "unit": "(pair, seed)", "strata": "pair"}}
+                              "unit": "(pair, seed)", "strata": "pair", "interval": INTERVAL_METHOD},
+                **({"warning": self.warning} if self.warning else {})}
 
 
 # -- reference replays -----------------------------------------------------------------------------
@@ -245,22 +258,36 @@ def stratified_resamples(strata: np.ndarray, samples: int = BOOTSTRAP_SAMPLES,
     return idx
 
 
-def interquartile_mean(values: np.ndarray, axis: int = -1) -> np.ndarray:
-    """Mean of the middle 50% of `values` along `axis` (the 25% at each end trimmed, fractional ends weighted)."""
-    v = np.sort(np.moveaxis(np.asarray(values, dtype=np.float64), axis, -1), axis=-1)
+def interquartile_mean(values: np.ndarray, axis: int | None = -1) -> np.ndarray:
+    """rliable's IQM: the mean of `values` along `axis` (all of them for None) without the lowest and the highest
+    floor(n / 4) (scipy.stats.trim_mean(values, 0.25))."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v.reshape(-1) if axis is None else np.moveaxis(v, axis, -1)
     n = v.shape[-1]
-    lo, hi = n / 4.0, 3.0 * n / 4.0
-    i = np.arange(n)
-    weight = np.clip(np.minimum(i + 1, hi) - np.maximum(i, lo), 0.0, 1.0)
-    return (v * weight).sum(axis=-1) / weight.sum()
+    cut = int(0.25 * n)
+    middle = np.partition(v, (cut, n - cut - 1), axis=-1)[..., cut:n - cut]
+    return np.mean(middle, axis=-1)
 
 
-def _interval(point: float, boot: np.ndarray, valid: bool) -> Estimate:
-    if not valid:
+INTERVAL_METHOD = "bootstrap standard error x sqrt(n / (n - 1)) x Student t (n - 1 per stratum)"
+
+
+@lru_cache(maxsize=None)
+def _t_quantile(df: int) -> float:
+    """Student's t quantile of the two-sided CONFIDENCE interval."""
+    from scipy.stats import t
+
+    return float(t.ppf(0.5 + CONFIDENCE / 2.0, df))
+
+
+def bootstrap_interval(point: float, replicates: np.ndarray, n: int, df: int,
+                       bounds: tuple[float, float] = (-np.inf, np.inf)) -> Estimate:
+    """point +- t(df) * sqrt(n / (n - 1)) * SD(replicates): the bootstrap's standard error corrected for n draws
+    per stratum; None bounds when n < 2 (no variance can be estimated), clipped to `bounds`."""
+    if n < 2 or df < 1:
         return Estimate(float(point), None, None)
-    alpha = (1.0 - CONFIDENCE) / 2.0
-    low, high = np.quantile(boot, [alpha, 1.0 - alpha])
-    return Estimate(float(point), float(low), float(high))
+    half = _t_quantile(df) * np.sqrt(n / (n - 1.0)) * float(np.std(replicates, ddof=1))
+    return Estimate(float(point), float(max(point - half, bounds[0])), float(min(point + half, bounds[1])))
 
 
 # -- the run's scores ------------------------------------------------------------------------------
@@ -290,15 +317,10 @@ def score_units(suite: Suite, units: Sequence[dict[str, Any]], rts_score: float,
         if name in realised_line:
             x = realised_line[name]
             columns[f"poi_{name}"] = ((y > x + EQUAL_TOLERANCE) + 0.5 * (np.abs(y - x) <= EQUAL_TOLERANCE)).mean(axis=1)
-    names = list(columns)
-    values = np.column_stack([columns[n] for n in names])
-    idx = stratified_resamples(pairs, samples, seed)
-    weights = np.zeros((samples, n_units))
-    np.add.at(weights, (np.arange(samples)[:, None], idx), 1.0)
-    boot = weights @ values / n_units
-    valid = bool(np.min(np.bincount(pairs)[np.unique(pairs)]) >= 2)
-    est = {n: _interval(float(values[:, j].mean()), boot[:, j], valid) for j, n in enumerate(names)}
-    iqm = _interval(float(interquartile_mean(columns["mean"])), interquartile_mean(columns["mean"][idx]), valid)
+    est = stratified_estimates(columns, pairs, samples, seed)
+    curves = pair_means(adjusted, pairs)
+    iqm = stratified_iqm(columns["mean"], pairs, samples, seed, cells=curves.mean(axis=1))
+    n_min = seeds_per_pair(pairs)
 
     skill = Estimate(float(skill_of(est["mean"].mean, rts_score)),
                      *(None if v is None else float(skill_of(v, rts_score)) for v in (est["mean"].low, est["mean"].high)))
@@ -313,7 +335,66 @@ def score_units(suite: Suite, units: Sequence[dict[str, Any]], rts_score: float,
         control_variates={"references": "t-optimal family, random task-specific, random (replayed on the same luck keys)",
                           "selection": "per (pair, episode): the least-variance candidate on the pair's other seeds",
                           "min_other_seeds": CV_MIN_OTHER_SEEDS, "episodes_adjusted": used["reference"],
-                          "episodes_unadjusted": used["none"]})
+                          "episodes_unadjusted": used["none"]},
+        pairs=tuple(int(p) for p in np.unique(pairs)), pair_curves=curves, seeds_per_pair=n_min,
+        warning=few_seeds_warning(n_min))
+
+
+def few_seeds_warning(n: int) -> str:
+    """Why intervals from `n` seeds per pair are not to be trusted ("" from MIN_SEEDS_COVERED on)."""
+    if n >= MIN_SEEDS_COVERED:
+        return ""
+    return (f"{n} seed(s) per pair: the 95% intervals were measured to cover about 90-93% below {MIN_SEEDS_COVERED} "
+            f"seeds per pair (the control variates are chosen on few seeds): read them as indicative; the protocol's "
+            f"default seeds are far above")
+
+
+def seeds_per_pair(pairs: np.ndarray) -> int:
+    """The fewest units of any pair present."""
+    return int(np.min(np.unique(pairs, return_counts=True)[1]))
+
+
+def pair_means(values: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Mean of `values` [U, ...] over each pair's units, pairs in increasing order: [P, ...]."""
+    order = np.unique(pairs)
+    return np.stack([values[pairs == p].mean(axis=0) for p in order])
+
+
+def stratified_estimates(columns: dict[str, np.ndarray], pairs: np.ndarray, samples: int = BOOTSTRAP_SAMPLES,
+                         seed: int = BOOTSTRAP_SEED) -> dict[str, Estimate]:
+    """The mean of each per-unit column with its interval from a bootstrap of seeds within pairs."""
+    names = list(columns)
+    values = np.column_stack([columns[n] for n in names])
+    n_units = len(pairs)
+    idx = stratified_resamples(pairs, samples, seed)
+    weights = np.zeros((samples, n_units))
+    np.add.at(weights, (np.arange(samples)[:, None], idx), 1.0)
+    boot = weights @ values / n_units
+    n, df = _strata_counts(pairs)
+    return {name: bootstrap_interval(float(values[:, j].mean()), boot[:, j], n, df,
+                                     (0.0, 1.0) if name.startswith("poi_") else (-np.inf, np.inf))
+            for j, name in enumerate(names)}
+
+
+def stratified_iqm(unit_means: np.ndarray, pairs: np.ndarray, samples: int = BOOTSTRAP_SAMPLES,
+                   seed: int = BOOTSTRAP_SEED, cells: np.ndarray | None = None) -> Estimate:
+    """rliable's IQM over the pair means of `unit_means` (or the given pair `cells`, the same up to rounding),
+    with its interval from the same bootstrap."""
+    order = np.unique(pairs)
+    onehot = (pairs[:, None] == order[None, :]).astype(np.float64)  # [U, P]
+    idx = stratified_resamples(pairs, samples, seed)
+    weights = np.zeros((samples, len(pairs)))
+    np.add.at(weights, (np.arange(samples)[:, None], idx), 1.0)
+    boot_means = (weights * unit_means[None, :]) @ onehot / onehot.sum(axis=0)[None, :]
+    n, df = _strata_counts(pairs)
+    point = interquartile_mean(pair_means(unit_means, pairs) if cells is None else cells)
+    return bootstrap_interval(float(point), interquartile_mean(boot_means), n, df)
+
+
+def _strata_counts(pairs: np.ndarray) -> tuple[int, int]:
+    """(fewest seeds in a pair, pooled degrees of freedom sum over pairs of (seeds - 1))."""
+    counts = np.unique(pairs, return_counts=True)[1]
+    return int(counts.min()), int((counts - 1).sum())
 
 
 def _reference_columns(suite: Suite, pairs: np.ndarray,
@@ -337,3 +418,18 @@ def _reference_columns(suite: Suite, pairs: np.ndarray,
     for name in EXACT_ONLY:
         exact[name] = np.array([episode_score(suite.pairs[p].data[name], suite.pairs[p].max_expected) for p in pairs])
     return exact, realised
+
+
+def reference_line_cells(suite: Suite) -> dict[str, np.ndarray]:
+    """Each exact reference line's expected score per pair of the suite (pairs in order), on the score scale."""
+    out: dict[str, list[float]] = {name: [] for name in (*COMPARED, *EXACT_ONLY)}
+    for p in suite.pairs:
+        names = policy_names(suite.tasks[p.task_index].N)
+        toptimal = p.data["toptimal"]
+        best_fixed = names.index(suite.content["tasks"][p.task_index]["curation"]["best_fixed_policy"])
+        values = {"best_fixed": toptimal[best_fixed], "max_expected": max(toptimal),
+                  "random_task_specific": p.data["baselines"][RANDOM_TASK_SPECIFIC.replace("-", "_")],
+                  "random": p.data["baselines"][RANDOM], "known_worker_optimum": p.data["known_worker_optimum"]}
+        for name, value in values.items():
+            out[name].append(float(episode_score(value, p.max_expected)))
+    return {name: np.array(v) for name, v in out.items()}

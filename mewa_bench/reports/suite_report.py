@@ -13,6 +13,7 @@ from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
 from mewa_bench.files import write_atomic
 from mewa_bench.game.distributions import worker_families
 from mewa_bench.game.palette import COLOR_NAMES
+from mewa_bench.protocol.config import DEFAULT_SEED_COUNTS
 from mewa_bench.reports.figures import save_png
 
 
@@ -127,7 +128,7 @@ in the suite files (`generator`, and each task's `worker_distribution`).
   symmetric. A constant worker belongs to both families.
 - **Meta-test region.** Grid workers (0.05) of either family outside the 2-sigma box of *every*
   family (for each family some component has |w_x - avg_x| >= 2 sigma_x).
-- **Meta-train distribution** (issue 16: a PPO agent trained inside the 2-sigma box never sees the
+- **Meta-train distribution** (why: a PPO agent trained inside the 2-sigma box never sees the
   extreme curated workers). Per draw: a family with probability 1/2; then, with probability 1/2,
   the paper's box sampler of that family (SPEC section 3 bands inside its 2-sigma box, kept in the
   family's order, never in the test region), else the *cover* sampler (uniform over the family's
@@ -176,7 +177,7 @@ def recommendation_section(suites: list[Suite]) -> str:
                   f"{gaps['narrow-v2']:.4f} and {gaps['wide-v2']:.4f}, are {gaps['narrow-v2'] / gaps['narrow-v1']:.0f}x and "
                   f"{gaps['wide-v2'] / gaps['wide-v1']:.0f}x v1's, and the best fixed policy is no better than the random "
                   "task-specific baseline, so a score above it is adaptation, not game knowledge. With protocol 2's default "
-                  "seeds (256 narrow, 96 wide) the shipped agents' paired differences with the best fixed policy have 95% "
+                  f"seeds ({DEFAULT_SEED_COUNTS['narrow']} narrow, {DEFAULT_SEED_COUNTS['wide']} wide) the shipped agents' paired differences with the best fixed policy have 95% "
                   "CI half-widths of at most 0.003 (leaderboards/, docs/protocol.md): under 1% of the v2 gaps, but up to "
                   "10-30% of the v1 gaps."]
     return "\n".join(lines + prior_gap_lines(suites)) + "\n"

@@ -1,4 +1,4 @@
-"""`mewa-bench serve`: the benchmark as a web service (issue 13).
+"""`mewa-bench serve`: the benchmark as a web service.
 
 An ASGI app (FastAPI, served by uvicorn) over one database layer (SQLAlchemy + Alembic migrations;
 SQLite in the data dir by default, PostgreSQL by URL), with:

@@ -1,8 +1,10 @@
 """The app factory: a FastAPI app over one service instance's settings and database.
 
 Building the app applies the schema migrations (a no-op when they are applied). The OpenAPI
-description is at /openapi.json (and browsable at /docs). Every error is JSON
-`{"error": code, "detail": message}`, including FastAPI's own request validation errors.
+description is at /openapi.json (and readable at /docs, a page built from it, offline). Every error
+is JSON `{"error": code, "detail": message}`, including FastAPI's own request validation errors and
+an unexpected failure (a 500 naming no internals). Every answer carries the security headers
+(`guards.SecurityHeaders`); submissions are received at most `limits.uploads_in_flight` at once.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ def create_app(settings: Settings) -> Any:
     require("sqlalchemy", "service", "mewa-bench serve")
     from fastapi import FastAPI, Request
     from fastapi.exceptions import RequestValidationError
-    from fastapi.responses import JSONResponse
+    from fastapi.responses import HTMLResponse, JSONResponse
     from starlette.exceptions import HTTPException
 
     from mewa_bench import __version__
@@ -47,14 +49,17 @@ def create_app(settings: Settings) -> Any:
     from mewa_bench.service.db import make_engine, migrate, schema_revision, session_factory
     from mewa_bench.service.errors import ApiError
     from mewa_bench.service.jobs import queue_counts
+    from mewa_bench.service.guards import SecurityHeaders, UploadGate
     from mewa_bench.service.limits import BodySizeLimit, RateLimiter
+    from mewa_bench.service.web.docs_page import docs_html
     from mewa_bench.service.routes import datasets, leaderboards, submissions, suites
     from mewa_bench.service import web  # the pages; included first, so its / and /leaderboards/<board> win
 
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    make_data_dir(settings)
     engine = make_engine(settings.database_url)
     migrate(engine)
-    app = FastAPI(title="MEWA benchmark service", version=__version__, description=DESCRIPTION)
+    app = FastAPI(title="MEWA benchmark service", version=__version__, description=DESCRIPTION, docs_url=None,
+                  redoc_url=None)
     app.state.settings = settings
     app.state.engine = engine
     app.state.sessions = session_factory(engine)
@@ -79,15 +84,49 @@ def create_app(settings: Settings) -> Any:
         return JSONResponse({"error": code, "detail": str(error.detail)}, status_code=error.status_code,
                             headers=getattr(error, "headers", None))
 
+    @app.exception_handler(Exception)
+    async def unexpected(request: Request, error: Exception) -> JSONResponse:
+        """Anything else: a JSON 500 that names no internals (the server's log has the traceback)."""
+        import logging
+
+        logging.getLogger("mewa_bench.service").exception("%s %s failed", request.method, request.url.path)
+        return JSONResponse({"error": "internal", "detail": "the server failed to answer this request"},
+                            status_code=500)
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> HTMLResponse:
+        """The API reference page."""
+        return HTMLResponse(docs_html(app.openapi()))
+
     @app.get("/api/health", tags=["service"], summary="Is the service up")
     def health() -> dict[str, Any]:
         """The database, its schema revision and the job queue."""
         with app.state.sessions() as s:
             counts = queue_counts(s)
+        from mewa_bench.service.cgroups import cgroup_support
+
         return {"status": "ok", "version": __version__, "database": engine.dialect.name,
-                "schema": schema_revision(engine), "jobs": counts}
+                "schema": schema_revision(engine), "jobs": counts, "sandbox_limits": cgroup_support().describe(),
+                "uploads_ranked": settings.rank_uploads}
 
     for module in (web, suites, leaderboards, datasets, submissions):
         app.include_router(module.router)
     app.add_middleware(BodySizeLimit, limit_of=body_limits(settings))
+    app.add_middleware(UploadGate, paths=frozenset({"/api/submissions/results", "/api/submissions/agent"}),
+                       limit=settings.limits.uploads_in_flight)
+    app.add_middleware(SecurityHeaders)  # added last: the outermost, so every answer has the headers
     return app
+
+
+def make_data_dir(settings: Settings) -> None:
+    """The data dir (0700 when made here) and the SQLite database file (0600 when made here)."""
+    import os
+
+    if not settings.data_dir.exists():
+        settings.data_dir.mkdir(parents=True, mode=0o700)
+        os.chmod(settings.data_dir, 0o700)  # whatever the umask
+    if settings.db_url is None:
+        database = settings.data_dir / "service.db"
+        if not database.exists():
+            os.close(os.open(database, os.O_CREAT | os.O_WRONLY, 0o600))
+            os.chmod(database, 0o600)

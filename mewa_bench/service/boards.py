@@ -2,6 +2,9 @@
 
 Rows are the leaderboard's own (`leaderboard.board.Row`, stored when the entry was scored), ranked
 the way `mewa-bench leaderboard` ranks them (privileged agents unranked, equal means share a rank),
+each with its `source`: server-evaluated (the server ran the agent file in its sandbox),
+self-reported (a results file the submitter ran: re-scored from its episodes, but played where the
+server could not see; unranked unless the server's `rank_uploads` is set) or reference,
 with the suite's exact reference lines and each agent's adaptation curve s_1..s_10 with its CIs.
 A hidden board shows scores only: never the hidden suite, its pairs, its size or the runs' units.
 Its reference lines (the fixed policies' and the optimum's means over the whole suite) are shown:
@@ -19,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
 from mewa_bench.leaderboard.board import AGENT, PRIVILEGED, REFERENCE, Row, competition_ranks, reference_rows
 from mewa_bench.protocol.config import EPISODES_PER_PAIR
+from mewa_bench.service.models import REFERENCE_SOURCE, SELF_REPORTED
 from mewa_bench.service.settings import HIDDEN_SUFFIX, Settings
 
 if TYPE_CHECKING:
@@ -78,22 +82,29 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
     entries = session.scalars(select(BoardEntry).where(BoardEntry.board == name)
                               .order_by(BoardEntry.mean.desc(), BoardEntry.agent_name, BoardEntry.id)).all()
     rows: list[dict[str, Any]] = []
-    ranks = iter(competition_ranks([e.mean for e in entries if not e.privileged]))
+
+    def ranked(e: BoardEntry) -> bool:
+        """Privileged runs never rank; self-reported ones only where the server says so."""
+        return not e.privileged and (e.source != SELF_REPORTED or settings.rank_uploads)
+
+    ranks = iter(competition_ranks([e.mean for e in entries if ranked(e)]))
     for e in entries:
         row = Row(**json.loads(e.row))
-        row = dataclasses.replace(row, rank=None if e.privileged else next(ranks), file=f"/api/submissions/{e.submission_id}")
+        row = dataclasses.replace(row, rank=next(ranks) if ranked(e) else None,
+                                  file=f"/api/submissions/{e.submission_id}")
         scores = json.loads(e.scores)
-        rows.append({**dataclasses.asdict(row), "submission_id": e.submission_id,
+        rows.append({**dataclasses.asdict(row), "source": e.source, "submission_id": e.submission_id,
                      "curve": [p["mean"] for p in scores["curve"]], "curve_low": [p["low"] for p in scores["curve"]],
                      "curve_high": [p["high"] for p in scores["curve"]]})
     references = reference_rows(suite) if suite is not None else []
     for r in references:
-        rows.append({**dataclasses.asdict(r), "submission_id": None, "curve": [r.mean] * EPISODES_PER_PAIR,
+        rows.append({**dataclasses.asdict(r), "source": REFERENCE_SOURCE, "submission_id": None, "curve": [r.mean] * EPISODES_PER_PAIR,
                      "curve_low": None, "curve_high": None})  # fixed policies: a flat curve
     rows.sort(key=lambda r: (-r["mean"], KIND_ORDER[r["kind"]], r["name"]))
     return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
             "suite": None if hidden or suite is None else {"name": suite.name, "sha256": suite.sha256},
-            "seeds": len(settings.seeds_for(name)), "entries": len(entries), "rows": rows}
+            "seeds": len(settings.seeds_for(name)), "entries": len(entries), "uploads_ranked": settings.rank_uploads,
+            "rows": rows}
 
 
 def boards_index(session: Session, settings: Settings) -> list[dict[str, Any]]:

@@ -50,11 +50,21 @@ def _answer(response: Any) -> Any:
     raise ServiceError(f"{response.request.url}: HTTP {response.status_code}: {detail}", response.status_code, code)
 
 
+BUSY_RETRIES = 20  # a server receiving its limit of submissions answers 503 with Retry-After: wait and retry
+
+
 def _request(method: str, url: str, **kwargs: Any) -> Any:
-    """One request; its JSON answer, or a ServiceError with the reason."""
+    """One request (retried while the server is busy); its JSON answer, or a ServiceError with the reason."""
+    import time
+
     httpx = _httpx()
     try:
-        return _answer(httpx.request(method, url, timeout=TIMEOUT, **kwargs))
+        for _ in range(BUSY_RETRIES):
+            response = httpx.request(method, url, timeout=TIMEOUT, **kwargs)
+            if response.status_code != 503 or "retry-after" not in response.headers:
+                break
+            time.sleep(min(30.0, float(response.headers["retry-after"])))
+        return _answer(response)
     except httpx.HTTPError as e:
         raise ServiceError(f"{url}: cannot reach the server: {e}") from None
 

@@ -32,6 +32,7 @@ class AgentJob:
     agent_args: dict[str, str]
     out: Path
     scratch: Path
+    output_log: Path | None = None  # the agent's stdout and stderr, capped
 
 
 def suite_of(settings: Settings, board: str, hidden: bool) -> str | Path:
@@ -43,10 +44,13 @@ def suite_of(settings: Settings, board: str, hidden: bool) -> str | Path:
     return hidden_suites(settings.data_dir, [board])[board]
 
 
-def run_agent_job(settings: Settings, job: AgentJob, progress: Callable[[int, int], None]) -> dict[str, Any]:
-    """Evaluate in the sandbox; returns the results. Raises AgentRejected with the reason, or another error."""
+def run_agent_job(settings: Settings, job: AgentJob, progress: Callable[[int, int], None],
+                  cancel: Callable[[], str | None] | None = None) -> dict[str, Any]:
+    """Evaluate in the sandbox; returns the results. Raises AgentRejected with the reason, SandboxCancelled when
+    `cancel` stopped it, or another error."""
     from mewa_bench.protocol.runner import EvaluationError
-    from mewa_bench.service.sandbox import SandboxViolation, sandbox_available, sandboxed_evaluate
+    from mewa_bench.service.sandbox import (SandboxLimits, SandboxViolation, sandbox_available,
+                                            sandboxed_evaluate)
 
     problem = sandbox_available()
     if problem is not None:
@@ -55,7 +59,11 @@ def run_agent_job(settings: Settings, job: AgentJob, progress: Callable[[int, in
     try:
         return sandboxed_evaluate(job.agent_file, suite, job.out, scratch=job.scratch, seeds=job.seeds,
                                   progress=progress, agent_args=job.agent_args, name=job.name,
-                                  private=(settings.data_dir,))
+                                  private=(settings.data_dir,), output_log=job.output_log, cancel=cancel,
+                                  limits=SandboxLimits(wall_seconds=settings.job_seconds,
+                                                       memory_bytes=settings.memory_bytes,
+                                                       scratch_bytes=settings.scratch_bytes,
+                                                       output_bytes=settings.output_bytes))
     except SandboxViolation as e:
         raise AgentRejected(f"sandbox rule broken ({e.rule}): {_without_paths(str(e), settings)}") from None
     except EvaluationError as e:

@@ -7,7 +7,9 @@ worker renews; a job whose lease expired (its worker crashed, was killed, or hun
 the reaper (`requeue_expired`, run before every claim), which says so in the job's `note` ("the
 worker's lease expired at ...; re-queued for attempt N of M"), up to `max_attempts` claims, after
 which it fails with the reason (`give_up_expired`). Every state change after the claim is
-conditional on the lease owner, so a worker that lost its lease can change nothing.
+conditional on the lease owner, so a worker that lost its lease can change nothing. The jobs of one
+submission end together: when one is rejected or fails, the others stop (`end_siblings`; a running
+one's worker finds its lease gone and kills its sandbox) and no board keeps an entry of it.
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from mewa_bench.service.models import DONE, FAILED, QUEUED, REJECTED, RUNNING, Job, Submission
+from mewa_bench.service.models import DONE, FAILED, QUEUED, REJECTED, RUNNING, BoardEntry, Job, Submission
+
+STOPPED = "stopped: "  # the head of the error of a job ended because another job of its submission did
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -83,10 +87,25 @@ def give_up_expired(sessions: sessionmaker[Session], now: float | None = None) -
             .values(state=FAILED, finished=now, lease_owner=None, lease_expires=None,
                     error="the service gave up: the worker running this job stopped (crashed, killed or lost its "
                           "lease) on each of its attempts")
-            .returning(Job.submission_id)).scalars().all()
-        for submission_id in set(given_up):
+            .returning(Job.id, Job.submission_id)).all()
+        for job_id, submission_id in given_up:
+            end_siblings(session, submission_id, job_id, FAILED, now)
+        for submission_id in {s for _, s in given_up}:
             free_digest(session, submission_id)
         return len(given_up)
+
+
+def end_siblings(session: Session, submission_id: int, job_id: int, state: str, now: float | None = None) -> None:
+    """Job `job_id` was rejected or failed: its submission's other unfinished jobs stop, and its entries go."""
+    from sqlalchemy import delete, select, update
+
+    now = time.time() if now is None else now
+    board = session.scalar(select(Job.board).where(Job.id == job_id))
+    session.execute(update(Job).where(Job.submission_id == submission_id, Job.id != job_id,
+                                      Job.state.in_((QUEUED, RUNNING)))
+                    .values(state=REJECTED, finished=now, lease_owner=None, lease_expires=None,
+                            error=f"{STOPPED}the submission's job on {board} was {state} first"))
+    session.execute(delete(BoardEntry).where(BoardEntry.submission_id == submission_id))
 
 
 def free_digest(session: Session, submission_id: int) -> None:
@@ -173,6 +192,7 @@ def close(session: Session, job_id: int, owner: str, state: str, error: str | No
     closed = session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
                              .values(**values).returning(Job.submission_id)).scalars().all()
     if closed and state != DONE:
+        end_siblings(session, closed[0], job_id, state)
         free_digest(session, closed[0])
     return len(closed) == 1
 

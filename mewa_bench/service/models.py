@@ -2,7 +2,7 @@
 
 Times are Unix seconds (floats) so that leases compare the same way on SQLite and PostgreSQL.
 Exactly-once rules live in unique constraints, not in code: one submission per upload digest
-(replays), one job per (submission, board), one board entry per job.
+(replays), one job per (submission, board), one board entry per job, one entry per run and board.
 """
 
 from __future__ import annotations
@@ -16,6 +16,9 @@ QUEUED, RUNNING, DONE, REJECTED, FAILED = "queued", "running", "done", "rejected
 JOB_STATES = (QUEUED, RUNNING, DONE, REJECTED, FAILED)
 RESULTS, AGENT = "results", "agent"  # submission kinds
 SCORE, EVALUATE = "score", "evaluate"  # job kinds
+# What a board row's scores rest on: the server's own evaluation of an agent file, a results file the submitter
+# ran (re-scored from its episodes, but played where the server cannot see), or the suite's reference lines.
+SERVER_EVALUATED, SELF_REPORTED, REFERENCE_SOURCE = "server-evaluated", "self-reported", "reference"
 
 
 class Base(DeclarativeBase):
@@ -82,6 +85,7 @@ class BoardEntry(Base):
     """A scored run on a board: written once, in the transaction that finishes its job."""
 
     __tablename__ = "entries"
+    __table_args__ = (UniqueConstraint("board", "run_digest", name="uq_entries_board_run"),)
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     submission_id: Mapped[int] = mapped_column(ForeignKey("submissions.id"), index=True)
     job_id: Mapped[int] = mapped_column(ForeignKey("jobs.id"), unique=True)
@@ -94,3 +98,5 @@ class BoardEntry(Base):
     row: Mapped[str] = mapped_column(Text)  # JSON: the leaderboard row (`leaderboard.board.Row` fields)
     scores: Mapped[str] = mapped_column(Text)  # JSON: the scores recomputed on the server, as a results file has them
     created: Mapped[float] = mapped_column(Float)
+    source: Mapped[str] = mapped_column(String(20), default=SERVER_EVALUATED, server_default=SERVER_EVALUATED)
+    run_digest: Mapped[str | None] = mapped_column(String(64), nullable=True)  # the run's episodes (one row per run)

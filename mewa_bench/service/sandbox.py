@@ -13,6 +13,13 @@ which talks to it over two pipes) is started inside the sandbox, through a `Laun
   no_new_privs. As root, bwrap runs without a user namespace and `setpriv` drops to 65534 (a real
   unprivileged uid, so RLIMIT_NPROC is enforced; root's processes are exempt from it); as any other
   user, bwrap maps that user to 65534 in a new user namespace (`--disable-userns` forbids nesting).
+- the agent process: `python -I -B` (isolated mode: no current directory, script directory, user
+  site or PYTHON* variables on its import path; no bytecode written), started in / (read-only), so
+  everything it imports before the agent loads comes from the read-only Python install and
+  package; it confines itself (below), then changes to the scratch directory and loads the agent.
+- a control group per sandbox (`service.cgroups`, v1 or v2, made under the server's own group):
+  memory and processes of the whole process tree; where none can be made, the per-process rlimits
+  below are all there is (`cgroups.cgroup_support` says which).
 - rlimits set by the agent process on itself before the agent loads: address space (the protocol's
   memory limit), CPU time, processes + threads, file size, open files, no core dumps.
 - seccomp (x86_64, aarch64): socket() of any family but AF_UNIX fails with EACCES; no new
@@ -27,8 +34,11 @@ which talks to it over two pipes) is started inside the sandbox, through a `Laun
   agent catches the PermissionError it gets. The hook only explains; the kernel enforces the rules
   (the private places are not in the sandbox at all; an agent can reach past Python with ctypes).
   Reads elsewhere outside the sandbox's mounts are not reported: libraries probe /sys and /etc.
-- time: the protocol's per-call limit, the CPU-time rlimit, and a wall-clock limit on the whole
-  evaluation, checked as units finish.
+- a watchdog thread (`service.watchdog`): the wall-clock limit of the whole evaluation, the scratch
+  directory's size, the group's out-of-memory kills and the caller's cancel, checked while units run;
+  it kills every process of the sandbox mid-call.
+- output: the agent's stdout and stderr go to a log of its own, capped (`service.agent_output`).
+- time: the protocol's per-call limit, the CPU-time rlimit, and the watchdog's wall-clock limit.
 
 A resumed evaluation continues from the units in the results file (`evaluate(resume=True)`);
 the scores are byte for byte those of `mewa-bench evaluate` with the same agent file and seeds.
@@ -45,22 +55,28 @@ import platform
 import re
 import resource
 import shutil
+import signal
 import socket
 import struct
 import subprocess
 import sys
 import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, ClassVar
 
-from mewa_bench.protocol.isolation import DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, Launcher, report_violation
+from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, Launcher, report_violation,
+                                           with_agent_threads)
+from mewa_bench.service.agent_output import OutputCapture
+from mewa_bench.service.cgroups import ROOT, Group, cgroup_support
+from mewa_bench.service.watchdog import Stop, Watchdog
 
 SANDBOX_UID = 65534  # nobody
 _SETTINGS_VARIABLE = "MEWA_SANDBOX"  # carries the limits into the agent process, which removes it
-_ENTRY = "from mewa_bench.service.sandbox import confined_child_main; confined_child_main()"
-_PASSED_ENVIRONMENT = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "PYTHONHASHSEED")
+_PYTHON_FLAGS = ("-I", "-B")  # isolated mode (a clean import path, no PYTHON* variables), no bytecode written
+_ENTRY = ("import sys; sys.path.append({root!r}); "
+          "from mewa_bench.service.sandbox import confined_child_main; confined_child_main()")
+_PASSED_ENVIRONMENT = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _SYSTEM_DIRS = ("/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32")  # beside /usr: symlinks into it on Debian
 
 
@@ -75,13 +91,21 @@ class SandboxLimits:
     file_bytes: int = 256 << 20  # the largest file the agent may write (RLIMIT_FSIZE)
     open_files: int = 1024  # RLIMIT_NOFILE
     tmp_bytes: int = 64 << 20  # size of /tmp and of /dev/shm (memory-backed)
-    wall_seconds: float | None = 6 * 3600  # the whole sandboxed_evaluate call, checked as units finish
+    wall_seconds: float | None = 6 * 3600  # the whole sandboxed_evaluate call, enforced mid-call by the watchdog
+    group_memory_bytes: int | None = None  # memory of the whole process tree (its control group); None: memory_bytes
+    scratch_bytes: int = 1 << 30  # the scratch directory's size on disk, polled by the watchdog
+    output_bytes: int = 1 << 20  # the agent's stdout and stderr kept in its log (output_log)
+
+
+class SandboxCancelled(RuntimeError):
+    """The caller's `cancel` stopped the evaluation (e.g. the job's lease was lost); the message says why."""
 
 
 class SandboxViolation(RuntimeError):
     """The agent broke a sandbox rule; `rule` names it and the message says what it did and where.
 
-    Rules: network, filesystem, cpu_time, processes, file_size, wall_time. Other agent failures
+    Rules: network, filesystem, cpu_time, processes, file_size, wall_time, memory (the whole process
+    tree's), scratch_size. Other agent failures
     (exceptions, invalid actions, per-call timeouts, memory) stay `protocol.runner.EvaluationError`s.
     """
 
@@ -103,13 +127,16 @@ def sandboxed_evaluate(agent_file: Path, suite: str | Path, out: Path, *, scratc
                        progress: Callable[[int, int], None] = lambda done, total: None,
                        agent_args: dict[str, str] | None = None, pairs: tuple[int, ...] | None = None,
                        name: str | None = None, lanes: int | None = None,
-                       private: tuple[Path, ...] = ()) -> dict[str, Any]:
+                       private: tuple[Path, ...] = (), output_log: Path | None = None,
+                       cancel: Callable[[], str | None] | None = None) -> dict[str, Any]:
     """Evaluate `agent_file` on `suite` with the agent in the sandbox; continue `out` if it holds part of this run.
 
     `scratch` is the agent's only writable directory (created; HOME and TMPDIR point there);
     `checkpoint_dir` (read-only) is given to the agent as its checkpoint argument; `agent_args`,
     `pairs`, `name` and `lanes` are evaluate's (lanes change nothing in the results); `private`:
-    places whose reading (beside the suite file and `out`) fails the run as a sandbox violation. Returns the
+    places whose reading (beside the suite file and `out`) fails the run as a sandbox violation; `output_log`:
+    where the agent's stdout and stderr go, capped at `limits.output_bytes` (None: this process's own);
+    `cancel`: polled while the agent runs, a reason stops the sandbox at once (SandboxCancelled). Returns the
     results (also in `out`). Raises SandboxViolation when the agent breaks a sandbox rule,
     `protocol.runner.EvaluationError` when it fails otherwise, RuntimeError if there is no sandbox here.
     """
@@ -137,43 +164,104 @@ def sandboxed_evaluate(agent_file: Path, suite: str | Path, out: Path, *, scratc
         raise PermissionError(f"{agent_file} is not readable by the sandbox user (uid {SANDBOX_UID}): make it "
                               f"world-readable (chmod o+r), as everything the agent loads must be")
     kept_from_agent = [out, *(Path(p).absolute() for p in private)] + ([] if shipped else [suite_file])
-    launcher = sandbox_launcher(readable, scratch, limits, kept_from_agent)
+    group = _make_group(limits)
+    output = None if output_log is None else OutputCapture(Path(output_log), limits.output_bytes)
+    launcher = sandbox_launcher(readable, scratch, limits, kept_from_agent, group=group,
+                                output=None if output is None else output.fd)
     config = EvalConfig(agent_path=agent_file, suite=str(suite), seeds=seeds, out=out, name=name,
                         agent_args=dict(agent_args or {}), checkpoint=None if checkpoint is None else str(checkpoint),
                         time_limit=limits.call_seconds, memory_limit=limits.memory_bytes, resume=True, pairs=pairs,
                         launcher=launcher, **({} if lanes is None else {"lanes": lanes}))
-    deadline = None if limits.wall_seconds is None else time.monotonic() + limits.wall_seconds
+    watchdog = Watchdog(functools.partial(_kill_sandbox, group, scratch), wall_seconds=limits.wall_seconds,
+                        scratch=scratch, scratch_bytes=limits.scratch_bytes, memory_bytes=_group_memory(limits),
+                        oom_kills=None if group is None else group.oom_kills, cancel=cancel)
+    units: list[tuple[int, int]] = [(0, 0)]
 
     def watched(done: int, total: int) -> None:
+        units[0] = (done, total)
+        if watchdog.stop is not None:
+            raise _stopped(watchdog.stop, agent_file, units[0], out)
         progress(done, total)
-        if deadline is not None and done < total and time.monotonic() > deadline:
-            raise SandboxViolation("wall_time", f"agent {agent_file}: the evaluation ran past its time limit of "
-                                                f"{limits.wall_seconds:g} s with {done} of {total} units done "
-                                                f"(they are kept in {out})")
 
     try:
-        results, _ = evaluate(config, progress=watched)
+        with watchdog:
+            results, _ = evaluate(config, progress=watched)
     except EvaluationError as e:
+        stop = watchdog.stop or watchdog.check_memory()  # an out-of-memory kill is the cause, whatever followed
+        if stop is not None:
+            raise _stopped(stop, agent_file, units[0], out) from None
         raise _explained(e, limits, visible) from None
+    finally:
+        _kill_sandbox(group, scratch)
+        if group is not None:
+            group.remove()
+        if output is not None:
+            output.close()
     return results
 
 
+def sandbox_isolation() -> str:
+    """What holds the sandbox as a whole on this machine (a control group, or the rlimits' fallback)."""
+    return cgroup_support(ROOT).describe()
+
+
+def _group_memory(limits: SandboxLimits) -> int:
+    """The memory limit of the sandbox's whole process tree."""
+    return limits.memory_bytes if limits.group_memory_bytes is None else limits.group_memory_bytes
+
+
+def _make_group(limits: SandboxLimits) -> Group | None:
+    """A control group for one sandbox, or None where this machine gives none (the rlimits then hold alone)."""
+    support = cgroup_support(ROOT)
+    if support.version == 0:
+        return None
+    return Group.make(ROOT, support.version, (_group_memory(limits), limits.processes))
+
+
+def _stopped(stop: Stop, agent_file: Path, units: tuple[int, int], out: Path) -> Exception:
+    """The error of a sandbox the watchdog stopped."""
+    done, total = units
+    if stop.rule == "cancelled":
+        return SandboxCancelled(f"agent {agent_file.name}: {stop.message}")
+    return SandboxViolation(stop.rule, f"agent {agent_file.name}: {stop.message} ({done} of {total} units were done; "
+                                       f"they are kept in {out})")
+
+
+def _kill_sandbox(group: Group | None, scratch: Path) -> None:
+    """SIGKILL every process of the sandbox: its group's, or (without one) those started with its scratch as HOME."""
+    if group is not None:
+        group.kill()
+        return
+    marker = f"HOME={scratch}".encode()
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and marker in (entry / "environ").read_bytes().split(b"\0"):
+                os.kill(int(entry.name), signal.SIGKILL)
+        except (OSError, ValueError):
+            pass  # gone meanwhile, or not ours
+
+
 def sandbox_launcher(readable: list[Path], scratch: Path, limits: SandboxLimits,
-                     private: list[Path] | None = None) -> Launcher:
+                     private: list[Path] | None = None, group: Group | None = None,
+                     output: int | None = None) -> Launcher:
     """The Launcher that starts the agent process in bwrap, seeing `readable` (read-only) and `scratch`; reading
-    `private` (outside those) is reported as a violation."""
+    `private` (outside those) is reported as a violation; its first process joins `group`; `output` takes its
+    stdout and stderr."""
     shown = [*_python_dirs(), *readable]
     prefix, layout = _bwrap_command(shown, scratch, limits)
+    if group is not None:
+        prefix = [*group.join_prefix(), *prefix]
     settings = {"cpu_seconds": limits.cpu_seconds, "processes": limits.processes, "file_bytes": limits.file_bytes,
                 "open_files": limits.open_files, "scratch": str(scratch), "writable": ["/tmp", "/dev", "/proc/self"],
                 "read_only": [str(p) for p in layout], "private": [os.path.realpath(p) for p in private or []],
                 "visible": [os.path.realpath(p) for p in [*shown, scratch]]}
     package_parent = Path(__file__).resolve().parents[2]
-    environment = {"PATH": "/usr/local/bin:/usr/bin:/bin", "HOME": str(scratch), "TMPDIR": str(scratch),
-                   "PYTHONPATH": str(package_parent), "PYTHONDONTWRITEBYTECODE": "1", "PYTHONNOUSERSITE": "1",
-                   "LANG": "C.UTF-8", "USER": "nobody", "LOGNAME": "nobody", _SETTINGS_VARIABLE: json.dumps(settings),
-                   **{k: os.environ[k] for k in _PASSED_ENVIRONMENT if k in os.environ}}
-    return Launcher(tuple(prefix), _ENTRY, tuple(sorted(environment.items())), python=sys.executable)
+    environment = with_agent_threads({
+        "PATH": "/usr/local/bin:/usr/bin:/bin", "HOME": str(scratch), "TMPDIR": str(scratch), "LANG": "C.UTF-8",
+        "USER": "nobody", "LOGNAME": "nobody", _SETTINGS_VARIABLE: json.dumps(settings),
+        **{k: os.environ[k] for k in _PASSED_ENVIRONMENT if k in os.environ}})
+    return Launcher(tuple(prefix), _ENTRY.format(root=str(package_parent)), tuple(sorted(environment.items())),
+                    python=sys.executable, flags=_PYTHON_FLAGS, output=output)
 
 
 def _python_dirs() -> list[Path]:
@@ -219,7 +307,7 @@ def _bwrap_command(readable: list[Path], scratch: Path, limits: SandboxLimits) -
         made.add(path)
         if not writable:
             layout.append(path)
-    command += ["--remount-ro", "/", "--chdir", str(scratch), "--"]
+    command += ["--remount-ro", "/", "--chdir", "/", "--"]  # the agent process changes to scratch once confined
     if as_root:
         command += [shutil.which("setpriv") or "setpriv", f"--reuid={SANDBOX_UID}", f"--regid={SANDBOX_UID}",
                     "--clear-groups", "--inh-caps=-all", "--bounding-set=-all", "--no-new-privs", "--"]
@@ -272,7 +360,10 @@ def _explained(error: Exception, limits: SandboxLimits, visible: list[Path]) -> 
 # -- inside the sandbox: the agent process confines itself before the agent loads -------------------------
 
 def confined_child_main() -> None:
-    """The agent process in the sandbox: rlimits, seccomp and the audit hook, then the protocol's child loop."""
+    """The agent process in the sandbox: rlimits, seccomp and the audit hook, then the protocol's child loop.
+
+    It runs with a clean import path (`python -I` in /): nothing it imports comes from a place the agent can write.
+    """
     from mewa_bench.protocol.isolation import _child_main
 
     settings = json.loads(os.environ.pop(_SETTINGS_VARIABLE))
@@ -285,6 +376,7 @@ def confined_child_main() -> None:
     _install_seccomp()
     sys.addaudithook(_AuditHook(settings["scratch"], settings["writable"], settings["read_only"], settings["private"],
                                 settings["visible"]))
+    os.chdir(settings["scratch"])  # relative paths are the agent's scratch; never on the import path (-I)
     _child_main()
 
 
@@ -438,14 +530,16 @@ def _probe() -> str | None:
         return "bubblewrap is not installed (Debian: apt-get install bubblewrap)"
     if os.geteuid() == 0 and shutil.which("setpriv") is None:
         return "setpriv (util-linux) is not installed; as root it drops the agent to an unprivileged user"
-    check = ("import os, socket, sys; from mewa_bench.service.sandbox import _install_seccomp; "
-             "seccomp = _install_seccomp(); print(os.getuid(), os.getgid(), seccomp)")
+    check = (f"import sys; sys.path.append({str(Path(__file__).resolve().parents[2])!r}); import os, socket; "
+             f"from mewa_bench.service.sandbox import _install_seccomp; "
+             f"seccomp = _install_seccomp(); print(os.getuid(), os.getgid(), seccomp)")
     with tempfile.TemporaryDirectory(prefix="mewa-sandbox-probe-") as directory:
         scratch = Path(directory) / "scratch"
         _prepare_scratch(scratch)
         launcher = sandbox_launcher([], scratch, SandboxLimits())
         try:
-            done = subprocess.run([*launcher.prefix, launcher.python, "-c", check], env=dict(launcher.environment),
+            done = subprocess.run([*launcher.prefix, launcher.python, *launcher.flags, "-c", check],
+                                  env=dict(launcher.environment),
                                   capture_output=True, text=True, timeout=60, check=False)
         except (OSError, subprocess.TimeoutExpired) as e:
             return f"bwrap could not start a sandbox: {e}"

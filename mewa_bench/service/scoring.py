@@ -32,12 +32,13 @@ class Scored:
     privileged: bool
     row: str  # JSON of the leaderboard row
     scores: str  # canonical JSON of the recomputed scores
+    run_digest: str  # the run's episodes (`uploads.results_digest`): one board row per run
 
 
 def score_upload(results: dict[str, Any], seeds: tuple[int, ...], submission_id: int) -> Scored:
     """Re-check and re-score an uploaded results file on its public suite; InvalidResults says what is wrong."""
     try:
-        validate_structure(results, "results file")
+        results = validate_structure(results, "results file")  # schema 3: its unit columns decoded
         suite, _, units = check_run(results, SuiteCache(), seeds)
         return _scored(results, suite, units, submission_id)
     except ResultsError as e:
@@ -56,6 +57,8 @@ def score_evaluation(results: dict[str, Any], suite: Suite, submission_id: int) 
 
 def _scored(results: dict[str, Any], suite: Suite, units: list[dict[str, Any]], submission_id: int) -> Scored:
     """Verified scores and the leaderboard row of a run."""
+    from mewa_bench.service.uploads import results_digest
+
     scores = verified_scores(units, suite, results["scores"])
     agent = results["agent"]
     entry = Entry(suite=suite.name, agent=str(agent["name"]), path=Path(str(submission_id)) / "results.json",
@@ -64,4 +67,5 @@ def _scored(results: dict[str, Any], suite: Suite, units: list[dict[str, Any]], 
                   agent_sha256=str(agent.get("sha256") or ""))
     row = entry_row(entry, None, "submissions")
     return Scored(mean=scores.mean.mean, privileged=entry.privileged,
-                  row=json.dumps(dataclasses.asdict(row), allow_nan=False), scores=json_text(scores.to_dict()))
+                  row=json.dumps(dataclasses.asdict(row), allow_nan=False), scores=json_text(scores.to_dict()),
+                  run_digest=results_digest(results, units))

@@ -3,7 +3,8 @@
 At start: the data dir, the schema migrations, and a sweep of upload files that no row points at
 (a server killed mid-upload; `uploads.sweep_orphans` says which are certainly orphaned). The
 workers are child processes, restarted if one dies; on SIGINT or SIGTERM the API stops taking
-requests and each worker puts its running job back in the queue.
+requests and each worker puts its running job back in the queue. A reaper thread re-queues (or gives
+up) jobs whose lease expired on a timer, so a dead worker's job shows it as soon as its lease ends.
 """
 
 from __future__ import annotations
@@ -35,7 +36,9 @@ def prepare(settings: Settings) -> IO[str]:
     from mewa_bench.service.models import Submission
     from mewa_bench.service.uploads import ORPHAN_AGE, hold_api_lock, share_api_lock, sweep_orphans
 
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    from mewa_bench.service.app import make_data_dir
+
+    make_data_dir(settings)
     lock, alone = hold_api_lock(settings)
     engine = make_engine(settings.database_url)
     try:
@@ -52,6 +55,48 @@ def prepare(settings: Settings) -> IO[str]:
     finally:
         engine.dispose()
     return lock
+
+
+class Reaper:
+    """Re-queues jobs whose lease expired (and gives up those out of attempts) every `period` seconds, in a thread."""
+
+    def __init__(self, settings: Settings, period: float) -> None:
+        from mewa_bench.service.db import make_engine, session_factory
+
+        self.period = period
+        self.engine = make_engine(settings.database_url)
+        self.sessions = session_factory(self.engine)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="reaper", daemon=True)
+
+    def start(self) -> Reaper:
+        """Start reaping."""
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        """Reap until stopped; a database hiccup waits for the next round."""
+        from mewa_bench.service.jobs import give_up_expired, requeue_expired
+
+        while not self._stop.wait(self.period):
+            try:
+                requeued, given_up = requeue_expired(self.sessions), give_up_expired(self.sessions)
+                if requeued or given_up:
+                    log.warning("reaper: %d job(s) re-queued, %d given up after their worker's lease expired",
+                                requeued, given_up)
+            except Exception:
+                log.exception("reaper: the round failed")
+
+    def stop(self) -> None:
+        """Stop reaping."""
+        self._stop.set()
+        self._thread.join()
+        self.engine.dispose()
+
+
+def reaper_period(settings: Settings) -> float:
+    """How often the reaper looks: a fraction of the lease, between 0.2 and 5 seconds."""
+    return min(5.0, max(0.2, settings.lease_seconds / 4))
 
 
 def _worker_entry(settings: Settings, log_level: int) -> None:
@@ -127,6 +172,7 @@ def run_server(settings: Settings, host: str = "127.0.0.1", port: int = 8000, wo
     app = create_app(settings)
     pool = WorkerPool(settings, workers, level)
     pool.start()
+    reaper = Reaper(settings, reaper_period(settings)).start()
     # uvicorn stops on SIGTERM or SIGINT, then raises it again with the handler it found: make that handler a no-op,
     # so that the workers are stopped below (each puts its running job back in the queue) before we exit
     for signum in (signal.SIGTERM, signal.SIGINT):
@@ -136,6 +182,7 @@ def run_server(settings: Settings, host: str = "127.0.0.1", port: int = 8000, wo
                                 lifespan="off")
         uvicorn.Server(config).run()
     finally:
+        reaper.stop()
         pool.stop()
         app.state.engine.dispose()
         api_lock.close()
@@ -145,7 +192,10 @@ def _warn_without_sandbox(workers: int) -> None:
     """Agents are only ever run sandboxed: say so at start if this machine cannot."""
     if workers == 0:
         return
-    from mewa_bench.service.sandbox import sandbox_available
+    from mewa_bench.service.sandbox import sandbox_available, sandbox_isolation
+
+    isolation = sandbox_isolation()
+    (log.warning if isolation.startswith("no cgroup") else log.info)("sandboxes: %s", isolation)
 
     problem = sandbox_available()
     if problem is not None:

@@ -30,6 +30,7 @@ class Limits:
     rate_per_minute: int = 60  # submissions per token and minute
     daily_results: int = 200  # results uploads per token and 24 hours
     daily_agents: int = 20  # agent submissions per token and 24 hours
+    uploads_in_flight: int = 4  # submissions read at once by the API process; more get a 503 with Retry-After
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,11 @@ class Settings:
     poll_seconds: float = 0.5  # how often an idle worker looks for a job
     hidden: bool = True  # evaluate agents on the hidden suites too
     catalog: Path | None = None  # dataset catalog served (default: data_dir/datasets/index.json, else the shipped one)
+    memory_bytes: int = 4 << 30  # an agent process's memory (the protocol's default), and its sandbox's as a whole
+    job_seconds: float = 6 * 3600.0  # wall-clock limit of one agent job's attempt, enforced mid-call
+    scratch_bytes: int = 1 << 30  # an agent job's scratch directory on disk
+    output_bytes: int = 1 << 20  # an agent's stdout and stderr kept per attempt, in the job's own log
+    rank_uploads: bool = False  # rank self-reported results uploads beside server-evaluated agents
 
     def __post_init__(self) -> None:
         """Keep the data dir absolute: workers and the sandbox see the same paths."""

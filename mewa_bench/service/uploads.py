@@ -78,10 +78,53 @@ def _no_constants(name: str) -> float:
     raise ValueError(f"{name} is not a JSON number (non-finite values are not allowed)")
 
 
+MAX_DEPTH = 32  # nesting of arrays and objects (a results file needs 6)
+MAX_INTEGER = 2**63 - 1  # integers beyond a database's and numpy's range are refused before they are used
+_BRACKETS = re.compile(rb'[\[\]{}"\\]')
+
+
+def nesting_depth(data: bytes, stop_above: int = MAX_DEPTH) -> int:
+    """How deeply arrays and objects nest in JSON text (outside strings); counting stops past `stop_above`."""
+    depth = deepest = 0
+    in_string = False
+    escaped_at = -1  # the position a backslash escapes
+    for match in _BRACKETS.finditer(data):
+        char, at = match.group(), match.start()
+        if in_string:
+            if at == escaped_at:
+                continue
+            if char == b"\\":
+                escaped_at = at + 1
+            elif char == b'"':
+                in_string = False
+            continue
+        if char == b'"':
+            in_string = True
+        elif char in (b"[", b"{"):
+            depth += 1
+            deepest = max(deepest, depth)
+            if deepest > stop_above:
+                return deepest
+        elif char in (b"]", b"}"):
+            depth -= 1
+    return deepest
+
+
+def _bounded_int(text: str) -> int:
+    """An integer literal within MAX_INTEGER, else a ValueError naming it."""
+    if len(text.lstrip("-")) > 19 or abs(value := int(text)) > MAX_INTEGER:
+        raise ValueError(f"the integer {text[:30]}{'...' if len(text) > 30 else ''} is out of range "
+                         f"(at most {MAX_INTEGER} in magnitude)")
+    return value
+
+
 def parse_results(data: bytes) -> Any:
-    """The uploaded bytes as JSON, or a 400 saying where the syntax breaks."""
+    """The uploaded bytes as JSON, or a 400 saying where the syntax breaks (nesting and integers are bounded)."""
+    if (depth := nesting_depth(data)) > MAX_DEPTH:
+        raise bad_request("invalid_json", f"the results file nests arrays and objects more than {MAX_DEPTH} deep "
+                                          f"(at least {depth})")
     try:
-        return json.loads(data.decode("utf-8"), parse_constant=_no_constants)
+        return json.loads(data.decode("utf-8"), parse_constant=_no_constants, parse_int=_bounded_int)
     except UnicodeDecodeError as e:
         raise bad_request("invalid_json", f"the results file is not UTF-8 text (byte {e.start})") from None
     except json.JSONDecodeError as e:
@@ -102,22 +145,30 @@ RUN_FIELDS = ("suite", "seeds", "episodes_per_pair", "env", "protocol_version")
 UNIT_FIELDS = ("pair", "seed", "task", "env_seeds", "returns")
 
 
-def results_digest(results: dict[str, Any]) -> str:
-    """What makes two results uploads the same run: where it was played and its episodes, whoever claims it."""
+def results_digest(results: dict[str, Any], units: list[dict[str, Any]] | None = None) -> str:
+    """What makes two results uploads the same run: where it was played and its episodes (`units`: its units as
+    dicts, default `results["units"]`), whoever claims it."""
     run = {field: results[field] for field in RUN_FIELDS}
-    run["units"] = sorted(({field: u[field] for field in UNIT_FIELDS} for u in results["units"]),
+    run["units"] = sorted(({field: u[field] for field in UNIT_FIELDS} for u in (results["units"] if units is None
+                                                                                else units)),
                           key=lambda u: (u["pair"], u["seed"]))
     return hashlib.sha256(b"results\0" + canonical_json(run).encode()).hexdigest()
 
 
-def check_results(data: bytes, settings: Settings, suites: Any) -> CheckedResults:
-    """Every check of a results upload that needs no scoring; 4xx ApiErrors say what failed."""
+def check_results(data: bytes, settings: Settings, suites: Any,
+                  privileged_agents: set[str] | frozenset[str] = frozenset()) -> CheckedResults:
+    """Every check of a results upload that needs no scoring; 4xx ApiErrors say what failed. A file that says a
+    run of one of `privileged_agents` (sha256s) was not privileged is refused first."""
     from mewa_bench.leaderboard.validate import InvalidResults, check_run
     from mewa_bench.protocol.results import ResultsError, validate_structure
+    from mewa_bench.service.privileged import refuse_unprivileged_claim
 
     results = parse_results(data)
+    agent = results.get("agent") if isinstance(results, dict) else None
+    if isinstance(agent, dict):
+        refuse_unprivileged_claim(privileged_agents, agent.get("sha256"), agent.get("privileged") is True)
     try:
-        validate_structure(results, "results file")
+        results = validate_structure(results, "results file")  # schema 3: its unit columns decoded
         name = results["suite"]["name"]
         if name not in ALL_SUITES:
             raise unprocessable("unknown_suite", f"results file: suite {name!r} is not a public suite of this server "

@@ -6,6 +6,12 @@ and this worker writes nothing. A job ends in one transaction that closes it (co
 lease) and inserts its board entry (unique per job), so a result can neither be lost between the
 two nor written twice. SIGTERM stops the worker cleanly: the running job goes back to the queue and
 its finished units stay in its results file for the next claim.
+
+An agent job's attempt gets a fresh scratch directory (`jobs/<id>/scratch-<attempt>`), removed when
+the attempt ends however it ends (and swept if a killed worker left one), and a log of its own for
+the agent's output (`jobs/<id>/output-<attempt>.log`). While it runs, the sandbox's watchdog stops
+it mid-call if the heartbeat finds the lease gone (another worker took the job, or another job of
+the submission was rejected and stopped this one).
 """
 
 from __future__ import annotations
@@ -19,11 +25,14 @@ import socket
 import secrets
 import threading
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mewa_bench.service.db import make_engine, session_factory, transaction
-from mewa_bench.service.jobs import Claimed, claim, close, give_up_expired, record_resume, release, renew
-from mewa_bench.service.models import DONE, FAILED, REJECTED, SCORE, BoardEntry, Submission
+from mewa_bench.service.jobs import (Claimed, claim, close, give_up_expired, record_resume, release, renew,
+                                     utc_text)
+from mewa_bench.service.models import (DONE, FAILED, REJECTED, RUNNING, SCORE, SELF_REPORTED, SERVER_EVALUATED,
+                                       BoardEntry, Job, Submission)
 from mewa_bench.service.settings import Settings
 
 if TYPE_CHECKING:
@@ -64,6 +73,13 @@ class Heartbeat:
         """Stop renewing (the job is ending)."""
         self._stop.set()
         self._thread.join()
+
+    def cancel_reason(self) -> str | None:
+        """Why the job must stop now (polled by the sandbox's watchdog), or None."""
+        if self.lost.is_set():
+            return f"job {self.job.id}: this worker no longer holds the job (its lease expired, or another job of " \
+                   f"its submission ended it)"
+        return None
 
     def progress(self, done: int, total: int) -> None:
         """The evaluation's progress callback: the first call says where this attempt resumes."""
@@ -108,6 +124,7 @@ def run_worker(settings: Settings, supervised: bool = False, max_jobs: int | Non
     sessions = session_factory(engine)
     owner = worker_id()
     log.info("worker %s started", owner)
+    sweep_scratch(settings, sessions)
     done = 0
     try:
         while max_jobs is None or done < max_jobs:
@@ -120,6 +137,7 @@ def run_worker(settings: Settings, supervised: bool = False, max_jobs: int | Non
                 time.sleep(settings.poll_seconds)
                 continue
             run_job(settings, sessions, job, owner)
+            sweep_scratch(settings, sessions)
             done += 1
     except StopWorker:
         log.info("worker %s stopped", owner)
@@ -132,6 +150,7 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, o
     log.info("job %s (%s, %s) claimed by %s, attempt %s", job.id, job.kind, job.board, owner, job.attempts)
     from mewa_bench.leaderboard.validate import InvalidResults
     from mewa_bench.service.evaluation import AgentRejected
+    from mewa_bench.service.sandbox import SandboxCancelled
 
     with Heartbeat(sessions, job, owner, settings.lease_seconds) as beat:
         try:
@@ -141,8 +160,8 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, o
                 close(session, job.id, owner, REJECTED, str(e))
             log.info("job %s rejected: %s", job.id, e)
             return
-        except LeaseLost:
-            log.warning("job %s: lease lost, left to its new owner", job.id)
+        except (LeaseLost, SandboxCancelled):
+            log.warning("job %s: this worker no longer holds it (lease lost, or stopped with its submission)", job.id)
             return
         except StopWorker:
             release(sessions, job.id, owner)
@@ -156,16 +175,68 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, o
             else:
                 release(sessions, job.id, owner, error=reason, count_attempt=True)
             return
+        finally:
+            shutil.rmtree(_scratch(settings, job), ignore_errors=True)
         if beat.lost.is_set():
             return
+    _finish(sessions, job, owner, scored)
+
+
+def _finish(sessions: sessionmaker[Session], job: Claimed, owner: str, scored: Scored) -> None:
+    """Close a scored job with its board entry, or rejected if its run is on the board already (one row per run); the
+    server's own evaluation of a run supersedes a self-reported upload of it."""
+    from sqlalchemy import select
+
+    source = SELF_REPORTED if job.kind == SCORE else SERVER_EVALUATED
     with transaction(sessions) as session:
-        if close(session, job.id, owner, DONE):
-            session.add(BoardEntry(submission_id=job.submission_id, job_id=job.id, board=job.board, hidden=job.hidden,
-                                   agent_name=json.loads(scored.row)["name"],
-                                   agent_sha256=json.loads(scored.row)["agent_sha256"], privileged=scored.privileged,
-                                   mean=scored.mean, row=scored.row, scores=scored.scores, created=time.time()))
-    shutil.rmtree(settings.jobs_dir / str(job.id) / "scratch", ignore_errors=True)
+        earlier = session.scalar(select(BoardEntry).where(BoardEntry.board == job.board,
+                                                          BoardEntry.run_digest == scored.run_digest))
+        if earlier is not None and (earlier.source != SELF_REPORTED or source != SERVER_EVALUATED):
+            reason = (f"replayed run: these episodes are those of submission {earlier.submission_id} on {job.board} "
+                      f"already (one run is one row, whatever its agent file's comments or name)")
+            if close(session, job.id, owner, REJECTED, reason):
+                log.info("job %s rejected: %s", job.id, reason)
+            return
+        if not close(session, job.id, owner, DONE):
+            return
+        if earlier is not None:  # the upload's row gives way to the server's evaluation of the same run
+            _note(session, earlier.job_id, f"{utc_text(time.time())}: its row gave way to submission "
+                                           f"{job.submission_id}, the server's own evaluation of the same run")
+            session.delete(earlier)
+            session.flush()
+        row = json.loads(scored.row)
+        session.add(BoardEntry(submission_id=job.submission_id, job_id=job.id, board=job.board, hidden=job.hidden,
+                               agent_name=row["name"], agent_sha256=row["agent_sha256"], privileged=scored.privileged,
+                               mean=scored.mean, row=scored.row, scores=scored.scores, created=time.time(),
+                               run_digest=scored.run_digest, source=source))
     log.info("job %s done", job.id)
+
+
+def _note(session: Session, job_id: int, line: str) -> None:
+    """Add a line to a job's note."""
+    job = session.get(Job, job_id)
+    if job is not None:
+        job.note = line if not job.note else f"{job.note}\n{line}"
+
+
+def _scratch(settings: Settings, job: Claimed) -> Path:
+    """This attempt's scratch directory."""
+    return settings.jobs_dir / str(job.id) / f"scratch-{job.attempts}"
+
+
+def sweep_scratch(settings: Settings, sessions: sessionmaker[Session]) -> list[Path]:
+    """Remove the scratch directories of jobs that are not running (left by killed workers); returns them."""
+    from sqlalchemy import select
+
+    found = [p for p in settings.jobs_dir.glob("*/scratch*") if p.parent.name.isdigit()]
+    if not found:
+        return []
+    with sessions() as session:
+        running = set(session.scalars(select(Job.id).where(Job.state == RUNNING)))
+    removed = [p for p in found if int(p.parent.name) not in running]
+    for path in removed:
+        shutil.rmtree(path, ignore_errors=True)
+    return removed
 
 
 def _score(settings: Settings, sessions: sessionmaker[Session], job: Claimed, beat: Heartbeat) -> Scored:
@@ -184,7 +255,10 @@ def _score(settings: Settings, sessions: sessionmaker[Session], job: Claimed, be
     job_dir = settings.jobs_dir / str(job.id)
     job_dir.mkdir(parents=True, exist_ok=True)
     os.chmod(job_dir, 0o700)
+    for left in job_dir.glob("scratch*"):  # a fresh scratch for every attempt: nothing an earlier one wrote is kept
+        shutil.rmtree(left, ignore_errors=True)
     agent = AgentJob(agent_file=path, board=job.board, hidden=job.hidden, seeds=job.seeds, name=name,
-                     agent_args=json.loads(args or "{}"), out=job_dir / "results.json", scratch=job_dir / "scratch")
-    results = run_agent_job(settings, agent, beat.progress)
+                     agent_args=json.loads(args or "{}"), out=job_dir / "results.json", scratch=_scratch(settings, job),
+                     output_log=job_dir / f"output-{job.attempts}.log")
+    results = run_agent_job(settings, agent, beat.progress, cancel=beat.cancel_reason)
     return score_evaluation(results, load_suite(suite_of(settings, job.board, job.hidden)), job.submission_id)

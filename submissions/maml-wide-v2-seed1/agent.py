@@ -5,10 +5,10 @@ Evaluate it: `mewa-bench evaluate submissions/maml-wide-v2-seed1/agent.py --suit
 
 from pathlib import Path
 
-from mewa_bench.agents.maml import MAMLAgent
+from mewa_bench.agents.maml import MAMLVectorAgent
 
 PRIVILEGED = False
 
 
-def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
-    return MAMLAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), seed=seed, greedy=greedy)
+def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="false"):
+    return MAMLVectorAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), num_lanes, seed=seed, greedy=greedy)

@@ -5,10 +5,10 @@ Evaluate it: `mewa-bench evaluate submissions/pearl-narrow-v1-seed3/agent.py --s
 
 from pathlib import Path
 
-from mewa_bench.agents.pearl import PEARLAgent
+from mewa_bench.agents.pearl import PEARLVectorAgent
 
 PRIVILEGED = False
 
 
-def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
-    return PEARLAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), seed=seed, greedy=greedy)
+def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="false"):
+    return PEARLVectorAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), num_lanes, seed=seed, greedy=greedy)

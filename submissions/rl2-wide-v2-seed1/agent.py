@@ -5,10 +5,10 @@ Evaluate it: `mewa-bench evaluate submissions/rl2-wide-v2-seed1/agent.py --suite
 
 from pathlib import Path
 
-from mewa_bench.agents.rl2 import RL2Agent
+from mewa_bench.agents.rl2 import RL2VectorAgent
 
 PRIVILEGED = False
 
 
-def make_agent(observation_space, action_space, seed="0", checkpoint=None, greedy="false"):
-    return RL2Agent(checkpoint or Path(__file__).with_name("checkpoint.pt"), seed=seed, greedy=greedy)
+def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="false"):
+    return RL2VectorAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), num_lanes, seed=seed, greedy=greedy)

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING, Annotated, Iterator
 
-from fastapi import Request
+from fastapi import Path, Request
 
 from mewa_bench.service.errors import ApiError
 from mewa_bench.service.settings import Settings
@@ -14,6 +14,8 @@ if TYPE_CHECKING:
 
     from mewa_bench.service.models import Token
 
+MAX_ID = 2**63 - 1  # the largest id a database row can have
+SubmissionId = Annotated[int, Path(ge=1, le=MAX_ID, description="A submission's id.")]
 TOKEN_HINT = "tokens are made by the server's admin: mewa-bench serve token create NAME"
 
 

@@ -60,8 +60,10 @@ def archive_url(request: Request, entry: dict[str, Any]) -> str:
 @router.get("", summary="The dataset catalog")
 def catalog(request: Request) -> dict[str, Any]:
     """The catalog (format as `datasets/index.json`), local archives' URLs pointing at this server."""
+    from mewa_bench.datasets.catalog import catalog_entries
+
     content = _catalog(settings_of(request))
-    for entry in content["datasets"]:
+    for entry in catalog_entries(content):  # training data and evaluation recordings
         if local_archive(entry) is not None:
             entry["url"] = archive_url(request, entry)
     return content

@@ -28,9 +28,11 @@ from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
 from mewa_bench.service.errors import ApiError, not_found
 from mewa_bench.service.faults import crash_point
+from mewa_bench.service.jobs import STOPPED
 from mewa_bench.service.limits import DAY, quota_error
 from mewa_bench.service.models import AGENT, DONE, EVALUATE, FAILED, QUEUED, REJECTED, RESULTS, RUNNING, SCORE
-from mewa_bench.service.routes.context import session, settings_of, submitter
+from mewa_bench.service.privileged import known_privileged
+from mewa_bench.service.routes.context import SubmissionId, session, settings_of, submitter
 from mewa_bench.service.uploads import (check_agent, check_archive, check_results, copy_limited, remove_upload,
                                         staging_path, store_agent, store_results)
 
@@ -118,7 +120,9 @@ def submit_results(request: Request, file: UploadFile = File(..., description="A
     settings = settings_of(request)
     request.app.state.rate.check(token.id, _rate(token, settings))
     data = read_limited(file, settings.limits.results_bytes, "the results file")
-    checked = check_results(data, settings, request.app.state.suites)
+    with request.app.state.sessions() as s:
+        privileged = known_privileged(s)
+    checked = check_results(data, settings, request.app.state.suites, privileged)
     relative = store_results(settings, data)
     crash_point("results-stored")
     try:
@@ -196,7 +200,9 @@ def describe(s: Session, submission: Submission, full: bool = False) -> dict[str
     entries = {e.job_id: e for e in s.scalars(select(BoardEntry).where(BoardEntry.submission_id == submission.id))}
     status = overall_status([j.state for j in jobs])
     shown = [_job_view(j) if full or not j.hidden else public_job(_job_view(j)) for j in jobs]
-    failed = sorted((j for j in shown if j["state"] in (REJECTED, FAILED)), key=lambda j: j["hidden"])  # public first
+    # the reason: a job that failed on its own (not one stopped with it), the public one first (a hidden one's is coarse)
+    failed = sorted((j for j in shown if j["state"] in (REJECTED, FAILED)),
+                    key=lambda j: ((j["error"] or "").startswith(STOPPED), j["hidden"]))
     scores: dict[str, Any] = {}
     for j in (j for j in jobs if j.id in entries):
         stored = json.loads(entries[j.id].scores)
@@ -226,6 +232,8 @@ def public_reason(error: str | None) -> str | None:
     """A hidden job's error as the public sees it: its kind only."""
     if error is None:
         return None
+    if error.startswith(STOPPED):  # names the other board only
+        return error
     kind = _ERROR_KIND.match(error)
     return f"{kind.group(1) if kind else 'an error'} on the hidden suite ({WITHHELD})"
 
@@ -243,7 +251,7 @@ def public_scores(scores: dict[str, Any]) -> dict[str, Any]:
 
 
 @router.get("/{submission_id}", summary="A submission's status")
-def submission_status(submission_id: int, db=Depends(session)) -> dict[str, Any]:
+def submission_status(submission_id: SubmissionId, db=Depends(session)) -> dict[str, Any]:
     """queued, running, done, rejected (with the reason) or failed; each job's progress; the scores once done."""
     from mewa_bench.service.models import Submission
 
@@ -266,6 +274,34 @@ def recent_submissions(db: Session, limit: int) -> list[dict[str, Any]]:
             states.setdefault(sid, []).append(state)
     return [{"id": x.id, "kind": x.kind, "suite": x.suite, "agent": x.agent_name, "created": x.created,
              "status": overall_status(states.get(x.id, [])), "url": f"/api/submissions/{x.id}"} for x in subs]
+
+
+@router.get("/{submission_id}/output", summary="The agent's output (its submitter only)")
+def submission_output(submission_id: SubmissionId, request: Request, token=Depends(submitter),
+                      db=Depends(session)) -> dict[str, Any]:
+    """What the agent printed (stdout and stderr, capped per attempt) on the public suite, for the token that
+    submitted it; a hidden suite's output is kept for the server's admin."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import Job, Submission
+
+    submission = db.get(Submission, submission_id)
+    if submission is None or submission.token_id != token.id:  # another's submission does not exist for you
+        raise not_found(f"submission {submission_id} of this token")
+    jobs = []
+    for job in db.scalars(select(Job).where(Job.submission_id == submission_id).order_by(Job.id)):
+        attempts = [] if job.hidden else job_output(settings_of(request), job.id)
+        jobs.append({"board": job.board, "hidden": job.hidden, "attempts": attempts,
+                     "withheld": WITHHELD if job.hidden else None})
+    return {"id": submission_id, "jobs": jobs}
+
+
+def job_output(settings, job_id: int) -> list[dict[str, Any]]:
+    """A job's output logs, one per attempt, oldest first."""
+    folder = settings.jobs_dir / str(job_id)
+    logs = sorted(folder.glob("output-*.log"), key=lambda p: int(p.stem.split("-")[1])) if folder.is_dir() else []
+    return [{"attempt": int(log.stem.split("-")[1]), "output": log.read_bytes().decode("utf-8", "replace")}
+            for log in logs]
 
 
 @router.get("", summary="The latest submissions")

@@ -18,6 +18,11 @@ _ROW_FIELDS = tuple(f.name for f in dataclasses.fields(Row))
 _NUMERIC = frozenset({"rank", "mean score [95% CI]", "IQM", "s_1", "s_10", "adaptability [95% CI]",
                       "vs best fixed [95% CI]", "skill", "seeds"})
 AGENT_COLUMN = HEADER.index("agent")
+SHA_COLUMN = HEADER.index("agent sha256")
+SHA_SHOWN = 12  # hex digits of the agent's sha256 in the table (all of it on hover and in the JSON)
+SOURCES = {"server-evaluated": "server-evaluated: the server ran the agent file in its sandbox",
+           "self-reported": "self-reported: a results file the submitter ran, re-scored from its episodes",
+           "reference": "reference: the suite's exact reference line"}
 
 
 def entries_text(n: int) -> str:
@@ -34,15 +39,20 @@ def table_row(content: dict[str, Any]) -> str:
     """One <tr>: the static leaderboard's cells, the agent linked to its submission."""
     row = row_of(content)
     tds = []
+    source = str(content.get("source", "reference"))
     for column, (header, text) in enumerate(zip(HEADER, cells(row), strict=True)):
         inner = esc(text)
         if column == AGENT_COLUMN and content.get("submission_id") is not None:
             inner = f'<a href="/submissions/{int(content["submission_id"])}">{inner}</a>'
+        if column == SHA_COLUMN and len(text) > SHA_SHOWN:
+            inner = f'<code title="{esc(text)}">{esc(text[:SHA_SHOWN])}…</code>'
         tds.append(f'<td class="n">{inner}</td>' if header in _NUMERIC else f"<td>{inner}</td>")
+        if column == AGENT_COLUMN:
+            tds.append(f'<td class="source" title="{esc(SOURCES.get(source, source))}">{esc(source)}</td>')
     submission = "" if content.get("submission_id") is None else f' data-submission="{int(content["submission_id"])}"'
     rank = "" if row.rank is None else row.rank
-    return (f'<tr class="{esc(row.kind)}" data-kind="{esc(row.kind)}" data-rank="{rank}" data-mean="{row.mean!r}"'
-            f"{submission}>" + "".join(tds) + "</tr>")
+    return (f'<tr class="{esc(row.kind)}" data-kind="{esc(row.kind)}" data-source="{esc(source)}" data-rank="{rank}" '
+            f'data-mean="{row.mean!r}"{submission}>' + "".join(tds) + "</tr>")
 
 
 def _facts(board: dict[str, Any]) -> str:
@@ -78,7 +88,7 @@ def _figure(board: dict[str, Any], figure_version: str | None, plotted: int) -> 
 
 def board_html(board: dict[str, Any], figure_version: str | None, plotted: int) -> str:
     """The whole page of a board (the JSON of /api/leaderboards/<board>)."""
-    head = "".join(f"<th>{esc(h)}</th>" for h in HEADER)
+    head = "".join(f"<th>{esc(h)}</th>" + ("<th>source</th>" if h == "agent" else "") for h in HEADER)
     rows = "\n".join(table_row(r) for r in board["rows"])
     notes = "".join(f"<li>{esc(n)}</li>" for n in NOTES)
     terms = "".join(f"<dt>{esc(t)}</dt><dd>{esc(text)}</dd>" for t, text in EXPLANATION)
@@ -86,6 +96,8 @@ def board_html(board: dict[str, Any], figure_version: str | None, plotted: int) 
     body = (f'<div id="board" data-board="{esc(board["board"])}" data-kind="{kind}">{_facts(board)}'
             f"{_figure(board, figure_version, plotted)}\n"
             f'<table id="ranking"><thead><tr>{head}</tr></thead><tbody>\n{rows}\n</tbody></table>\n'
+            f'<p class="muted">Sources: {"; ".join(esc(t) for t in SOURCES.values())}. Self-reported rows are '
+            f"{'ranked' if board.get('uploads_ranked') else 'unranked'} on this server.</p>"
             f"<ul class=\"muted\">{notes}</ul><dl class=\"muted\">{terms}</dl></div>")
     title = f"Leaderboard: {board['board']}" + (" (hidden test suite)" if board["hidden"] else "")
     return page(title, body)

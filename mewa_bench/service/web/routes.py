@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse, Response
 
 from mewa_bench.service import boards
-from mewa_bench.service.routes.context import session, settings_of
+from mewa_bench.service.routes.context import SubmissionId, session, settings_of
 from mewa_bench.service.web import board_page, curves, index_page, layout, status_page
 
 router = APIRouter(tags=["pages"])
@@ -64,7 +64,7 @@ def leaderboard_figure(name: str, request: Request, db=Depends(session)) -> Resp
 
 
 @router.get("/submissions/{submission_id}", response_class=HTMLResponse, summary="A submission's page")
-def submission_page(submission_id: int, db=Depends(session)) -> HTMLResponse:
+def submission_page(submission_id: SubmissionId, db=Depends(session)) -> HTMLResponse:
     """Status, jobs and their progress, the reason of a rejection, the scores; reloads itself until final."""
     from mewa_bench.service.models import Submission
     from mewa_bench.service.routes.submissions import describe

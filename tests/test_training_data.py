@@ -1,0 +1,352 @@
+"""Training datasets: meta-train workers only, exact labels and reference scores, byte-reproducible, read by lerobot."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from mewa_bench.datasets import (DatasetError, TrainingDataError, add_to_catalog, build_training_dataset,
+                                 check_training_dataset, download, load_catalog, load_training_dataset, pack_dataset,
+                                 training_spec)
+from mewa_bench.datasets import training_data
+from mewa_bench.datasets.bulk_writer import write_lerobot_dataset
+from mewa_bench.design.exact import expected_returns
+from mewa_bench.design.policies import toptimal_family
+from mewa_bench.design.suites import ALL_SUITES, load_suite
+from mewa_bench.envs.mewa_env import MewaEnv
+from mewa_bench.game.table import transition_table
+from mewa_bench.protocol.config import default_seeds, env_seed
+
+SMALL = {"random": 600, "random-task-specific": 600, "learning-histories": 1, "expert": 1}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def offline_hub(tmp_path_factory):
+    """Keep lerobot / huggingface_hub caches in a temp dir and forbid Hub access."""
+    home = tmp_path_factory.mktemp("hf_home")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HF_HOME", str(home))
+        mp.setenv("HF_LEROBOT_HOME", str(home / "lerobot"))
+        mp.setenv("HF_HUB_OFFLINE", "1")
+        yield
+
+
+def small_spec(suite: str, tier: str):
+    """A few meta-episodes of a tier (two per round)."""
+    spec = training_spec(f"{suite}-train-{tier}", SMALL[tier])
+    return replace(spec, meta_batch=2, history_episodes=20)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """One small dataset per tier on narrow-v2, and the random task-specific tier on wide-v2 (several tasks)."""
+    out = tmp_path_factory.mktemp("training")
+    roots = {}
+    for suite, tier in [("narrow-v2", t) for t in ("random", "random-task-specific", "learning-histories", "expert")] + \
+            [("wide-v2", "random-task-specific")]:
+        roots[(suite, tier)] = out / f"{suite}-{tier}"
+        build_training_dataset(small_spec(suite, tier), roots[(suite, tier)], jobs=1)
+    return roots
+
+
+def frames(root: Path) -> pd.DataFrame:
+    """All frames, read with plain pyarrow."""
+    return pd.concat([pq.read_table(f).to_pandas() for f in sorted((root / "data").rglob("*.parquet"))],
+                     ignore_index=True)
+
+
+def meta(root: Path) -> dict:
+    return json.loads((root / "meta" / "mewa.json").read_text())
+
+
+def curated() -> np.ndarray:
+    """Every curated worker of every shipped suite, padded to 4 components with 0 (as the frames store them)."""
+    rows = [list(p.worker.w) + [0.0] * (4 - len(p.worker.w)) for s in ALL_SUITES for p in load_suite(s).pairs]
+    return np.array(rows)
+
+
+def protocol_keys() -> set[int]:
+    """The ranked protocol's luck keys (= env seeds) on every shipped suite."""
+    out = set()
+    for name in ALL_SUITES:
+        suite = load_suite(name)
+        for pair in range(len(suite.pairs)):
+            for seed in default_seeds(name):
+                out.update(env_seed(suite.sha256, pair, seed, e) for e in range(10))
+    return out
+
+
+def test_no_frame_has_a_curated_worker_or_a_protocol_luck_key(built):
+    tests, keys = curated(), protocol_keys()
+    for key, root in built.items():
+        df = frames(root)
+        workers = np.unique(np.stack(df["worker"].to_numpy()), axis=0)
+        assert len(workers) == df["meta_episode_index"].nunique()  # one worker per meta-episode
+        for w in workers:
+            assert np.abs(tests - w).max(axis=1).min() > 1e-9, f"{key}: worker {w} is curated"
+        assert not set(df["luck_key"].tolist()) & keys, key
+        m = meta(root)
+        assert m["kind"] == "training" and m["suite"]["name"] == key[0]
+        assert len(m["meta_episodes"]) == df["meta_episode_index"].nunique()
+
+
+def test_a_dataset_from_a_test_worker_is_refused(tmp_path, monkeypatch):
+    suite = load_suite("narrow-v2")
+    test_worker = np.array(suite.pairs[3].worker.w)
+
+    def sample(tasks, rng, n):  # the meta-train sampler replaced by one that hands out a curated worker
+        return np.zeros(n, dtype=np.int64), np.tile(test_worker, (n, 1))
+
+    monkeypatch.setattr(training_data, "sample_training_pairs", sample)
+    with pytest.raises(TrainingDataError, match="curated test worker of narrow-v2 pair 3"):
+        build_training_dataset(small_spec("narrow-v2", "random"), tmp_path / "bad", jobs=1)
+    assert not (tmp_path / "bad").exists() and list(tmp_path.iterdir()) == []
+
+
+def _tamper(root: Path, column: str, value) -> None:
+    """Rewrite one frame's value of a column in place (as a hand-edited or malicious dataset would)."""
+    path = sorted((root / "data").rglob("*.parquet"))[0]
+    table = pq.read_table(path)
+    values = table.column(column).to_pylist()
+    values[5] = value
+    i = table.schema.get_field_index(column)
+    pq.write_table(table.set_column(i, table.schema.field(i), pa.array(values, type=table.schema.field(i).type)), path)
+
+
+def test_a_tampered_dataset_is_refused_when_loaded(built, tmp_path):
+    source = built[("narrow-v2", "random")]
+    check_training_dataset(source)  # the good one passes
+    worker = tmp_path / "worker"
+    shutil.copytree(source, worker)
+    _tamper(worker, "worker", list(load_suite("wide-v2").pairs[0].worker.w))
+    with pytest.raises(TrainingDataError, match=r"worker \[0.0, 0.0, 0.0, 1.0\] .* is the curated test worker of"):
+        load_training_dataset(worker)
+    key = tmp_path / "key"
+    shutil.copytree(source, key)
+    suite = load_suite("narrow-v2")
+    _tamper(key, "luck_key", env_seed(suite.sha256, 2, 7, 4))
+    with pytest.raises(TrainingDataError, match="luck key of the evaluation protocol"):
+        check_training_dataset(key)
+    recording = tmp_path / "recording"
+    shutil.copytree(source, recording)
+    (recording / "meta" / "mewa.json").write_text(json.dumps({"format": "mewa-bench-lerobot"}))
+    with pytest.raises(TrainingDataError, match="not a mewa-bench training dataset"):
+        load_training_dataset(recording)
+
+
+def _independent_q(task, worker: np.ndarray, horizon: int) -> np.ndarray:
+    """Q[k, s, a] with k steps left, by plain backward induction over the rules' transition table."""
+    table = transition_table(task)
+    w = np.append(worker[: task.N], 0.0)
+    p_bad = w[np.where(table.mistake_type < 0, task.N, table.mistake_type)]  # [S, 4]
+    value = np.zeros(table.n_states)
+    out = np.zeros((horizon + 1, table.n_states, 4))
+    for k in range(1, horizon + 1):
+        ok = table.reward[table.next_ok] + value[table.next_ok]
+        bad = table.reward[table.next_mistake] + value[table.next_mistake]
+        q = (1 - p_bad) * ok + p_bad * bad
+        q[table.terminal] = 0.0
+        out[k] = q
+        value = q.max(axis=1)
+    return out
+
+
+def test_stored_optimal_actions_are_the_exact_optimum(built):
+    rng = np.random.default_rng(5)
+    for key in (("narrow-v2", "random"), ("narrow-v2", "learning-histories"), ("wide-v2", "random-task-specific")):
+        root = built[key]
+        df, suite = frames(root), load_suite(key[0])
+        checked = 0
+        for m in rng.choice(df["meta_episode_index"].unique(), size=2, replace=False):
+            rows = df[df["meta_episode_index"] == m]
+            task = suite.tasks[int(rows["suite_task_index"].iloc[0])]
+            q = _independent_q(task, np.asarray(rows["worker"].iloc[0]), task.T)
+            table = transition_table(task)
+            index = {o.tobytes(): i for i, o in enumerate(table.obs)}
+            for _, frame in rows.sample(n=min(40, len(rows)), random_state=1).iterrows():
+                s = index[np.asarray(frame["observation.state"], dtype=np.float32).tobytes()]
+                qs = q[task.T - int(frame["frame_index"]), s]
+                assert qs[int(frame["optimal_action"])] >= qs.max() - 1e-12, (key, m, dict(frame))
+                checked += 1
+        assert checked >= 20
+
+
+def test_stored_reference_scores_are_the_exact_engines(built):
+    for key, root in built.items():
+        m, df = meta(root), frames(root)
+        suite = load_suite(key[0])
+        rand, best = [], []
+        for record in m["meta_episodes"]:
+            task = suite.tasks[record["task"]]
+            values = expected_returns(task, (*toptimal_family(task.N), "random"), [record["worker"]])[:, 0]
+            rand.append(values[-1])
+            best.append(values[:-1].max())
+            assert abs(record["max_expected"] - values[:-1].max()) < 1e-11
+        assert abs(m["ref_min_score"] - np.mean(rand)) < 1e-11 and abs(m["ref_max_score"] - np.mean(best)) < 1e-11
+        if key[1] == "expert":
+            assert "expected_return" not in df.columns  # an adaptive agent's behaviour has no fixed value
+            continue
+        first = df.groupby(["meta_episode_index", "episode_in_meta_episode"]).first()
+        policies = m["behaviour"]["policies"]
+        for (meta_index, _), frame in first.sample(n=6, random_state=2).iterrows():
+            record = m["meta_episodes"][meta_index]
+            task = suite.tasks[record["task"]]
+            policy = policies[int(frame["behaviour_policy"])]
+            exact = expected_returns(task, (policy,), [record["worker"]])[0, 0]
+            assert abs(frame["expected_return"] - exact) < 1e-11
+            assert abs(frame["expected_score"] - exact / record["max_expected"]) < 1e-11
+
+
+def test_episodes_replay_in_the_env_with_their_luck_keys(built):
+    for key in (("narrow-v2", "random"), ("narrow-v2", "expert"), ("wide-v2", "random-task-specific")):
+        df, suite = frames(built[key]), load_suite(key[0])
+        env = MewaEnv(task=suite.tasks[0], worker=[0.1] * suite.tasks[0].N)
+        for episode in (0, int(df["episode_index"].max())):
+            rows = df[df["episode_index"] == episode]
+            task = suite.tasks[int(rows["suite_task_index"].iloc[0])]
+            obs, _ = env.reset(options={"task": task, "worker": list(rows["worker"].iloc[0][: task.N]),
+                                        "luck_key": int(rows["luck_key"].iloc[0])})
+            for _, frame in rows.iterrows():
+                assert np.array_equal(obs, frame["observation.state"])
+                obs, reward, terminated, truncated, _ = env.step(int(frame["action"]))
+                assert np.array_equal(obs, frame["next.observation.state"])
+                assert np.float32(reward) == frame["next.reward"] and terminated == frame["next.terminated"]
+            assert terminated or truncated
+
+
+def test_meta_episodes_and_blocks_are_marked(built):
+    m = meta(built[("narrow-v2", "learning-histories")])
+    df = frames(built[("narrow-v2", "learning-histories")])
+    assert m["episodes_per_meta_episode"] == 20 and set(df["episode_in_meta_episode"]) == set(range(20))
+    assert (df["block_index"] == df["episode_in_meta_episode"] // 10).all()
+    assert (df["episode_in_block"] == df["episode_in_meta_episode"] % 10).all()
+    firsts = df.groupby("episode_index").first()
+    assert (firsts["frame_index"] == 0).all() and firsts.groupby("meta_episode_index").size().eq(20).all()
+    for tier in ("random", "expert"):
+        d = frames(built[("narrow-v2", tier)])
+        assert set(d["episode_in_meta_episode"]) == set(range(10)) and (d["block_index"] == 0).all()
+    # the learner learns: its last block's exact expected score beats its first block's
+    per_episode = firsts.groupby("episode_in_meta_episode")["expected_score"].mean()
+    assert per_episode[10:].mean() > per_episode[:3].mean()
+
+
+def _tree(root: Path) -> dict[str, str]:
+    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_a_rebuild_gives_the_same_bytes_and_sha256(built, tmp_path):
+    for key in (("narrow-v2", "learning-histories"), ("wide-v2", "random-task-specific")):
+        again = tmp_path / f"{key[0]}-{key[1]}"
+        build_training_dataset(small_spec(*key), again, jobs=2)  # parallel exact values: the same bytes
+        assert _tree(again) == _tree(built[key])
+        a = pack_dataset(built[key], tmp_path / "a", "x", "1", key[0], key[1])
+        b = pack_dataset(again, tmp_path / "b", "x", "1", key[0], key[1])
+        assert a["sha256"] == b["sha256"] and a["kind"] == "training" and a["ref_max_score"] == meta(again)["ref_max_score"]
+
+
+def test_lerobot_reads_every_dataset(built):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    for key, root in built.items():
+        df, m = frames(root), meta(root)
+        ds = LeRobotDataset(m["dataset_id"], root=root, video_backend="pyav")
+        assert ds.num_frames == len(df) == m["total_steps"] and ds.num_episodes == m["total_episodes"]
+        for i in (0, len(df) - 1):
+            item = ds[i]
+            assert item["optimal_action"].item() == df["optimal_action"][i]
+            assert np.array_equal(item["observation.state"].numpy(), df["observation.state"][i])
+            assert item["luck_key"].item() == df["luck_key"][i] and item["episode_index"].item() == df["episode_index"][i]
+
+
+def test_the_bulk_writer_matches_lerobots_own_writer(tmp_path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {"observation.state": {"dtype": "float32", "shape": (3,), "names": ["a", "b", "c"]},
+                "action": {"dtype": "int64", "shape": (1,), "names": ["colour"]},
+                "next.done": {"dtype": "bool", "shape": (1,), "names": None},
+                "worker": {"dtype": "float64", "shape": (4,), "names": None},
+                "expected_return": {"dtype": "float64", "shape": (1,), "names": None}}
+    rng = np.random.default_rng(0)
+    lengths = [3, 5, 1, 4]
+    tasks = ["task 0", "task 1", "task 0", "task 2"]
+    n = sum(lengths)
+    columns = {"observation.state": rng.random((n, 3)).astype(np.float32), "action": rng.integers(0, 4, n),
+               "next.done": rng.random(n) < 0.3, "worker": rng.random((n, 4)), "expected_return": rng.random(n)}
+    ours = tmp_path / "bulk"
+    write_lerobot_dataset(ours, features, columns, np.array(lengths), tasks, 10, "mewa/MEWA-v0")
+    theirs = LeRobotDataset.create("mewa/ref", 10, features=features, root=tmp_path / "ref",
+                                   robot_type="mewa/MEWA-v0", use_videos=False)
+    f = 0
+    for length, task in zip(lengths, tasks):
+        for _ in range(length):
+            theirs.add_frame({**{k: np.atleast_1d(v[f]) for k, v in columns.items()}, "task": task})
+            f += 1
+        theirs.save_episode()
+    theirs.finalize()
+    ref = tmp_path / "ref"
+    assert json.loads((ours / "meta/info.json").read_text()) == json.loads((ref / "meta/info.json").read_text())
+    assert pd.read_parquet(ours / "meta/tasks.parquet").equals(pd.read_parquet(ref / "meta/tasks.parquet"))
+    data = "data/chunk-000/file-000.parquet"
+    a, b = pq.read_table(ours / data), pq.read_table(ref / data)
+    assert a.schema.remove_metadata() == b.schema.remove_metadata() and a.equals(b.replace_schema_metadata(a.schema.metadata))
+    hf = lambda t: json.loads(t.schema.metadata[b"huggingface"])["info"]  # noqa: E731
+    assert hf(a) == hf(b)
+    episodes = "meta/episodes/chunk-000/file-000.parquet"
+    ea, eb = pq.read_table(ours / episodes), pq.read_table(ref / episodes)
+    assert ea.schema == eb.schema
+    exact = [c for c in ea.column_names if not c.split("/")[-1].startswith("q")]  # lerobot's quantiles are histogram estimates
+    for column in exact:
+        x, y = ea.column(column).to_pylist(), eb.column(column).to_pylist()
+        assert np.allclose(np.array(x, dtype=float), np.array(y, dtype=float)) if column.startswith("stats/") else x == y, column
+    sa, sb = (json.loads((root / "meta/stats.json").read_text()) for root in (ours, ref))
+    assert sa.keys() == sb.keys()
+    for key in sa:
+        for stat in ("min", "max", "mean", "std", "count"):
+            assert np.allclose(sa[key][stat], sb[key][stat]), (key, stat)
+    mine = LeRobotDataset("mewa/bulk", root=ours, video_backend="pyav")
+    for i in range(n):
+        x, y = mine[i], theirs[i]
+        assert x.keys() == y.keys() and all(str(x[k]) == str(y[k]) for k in x), i
+
+
+def test_shipped_training_dataset_downloads_and_a_bad_copy_never_replaces_it(tmp_path):
+    catalog_path = Path(__file__).resolve().parents[1] / "datasets" / "index.json"
+    catalog = load_catalog(catalog_path)
+    entry = catalog["datasets"][0]
+    got = download(entry["name"], catalog, tmp_path / "data")
+    assert got.verified and load_training_dataset(got.path).num_frames == entry["frames"]
+    good = _tree(got.path)
+    archive = Path(entry["url"].removeprefix("file://")).read_bytes()
+    short = tmp_path / "short.tar.gz"
+    short.write_bytes(archive[: len(archive) // 2])
+    with pytest.raises(DatasetError, match="downloaded .* bytes, the catalog says"):
+        download(entry["name"], {**catalog, "datasets": [{**entry, "url": short.as_uri()}]}, tmp_path / "data")
+    assert _tree(got.path) == good
+    # an archive that verifies (its own size and sha256) but holds a test worker is refused too
+    bad_root = tmp_path / "bad" / entry["name"]
+    shutil.copytree(got.path, bad_root)
+    _tamper(bad_root, "worker", list(load_suite("narrow-v2").pairs[0].worker.w))
+    bad = pack_dataset(bad_root, tmp_path / "packed", entry["name"], entry["version"], entry["suite"], entry["policy"])
+    add_to_catalog(tmp_path / "index.json", bad)
+    with pytest.raises(DatasetError, match="refused: .*curated test worker"):
+        download(entry["name"], load_catalog(tmp_path / "index.json"), tmp_path / "data")
+    assert _tree(got.path) == good and sorted(p.name for p in (tmp_path / "data").iterdir()) == [entry["name"]]
+
+
+def test_shipped_training_dataset_rebuilds_to_its_catalog_sha256(tmp_path):
+    from mewa_bench.datasets.build import build_named
+
+    entry = load_catalog(Path(__file__).resolve().parents[1] / "datasets" / "index.json")["datasets"][0]
+    result = build_named(entry["name"], tmp_path, jobs=1)
+    assert result.entry["sha256"] == entry["sha256"] and result.matches_record is True
+    assert load_catalog(tmp_path / "index.json")["datasets"][0]["sha256"] == entry["sha256"]
