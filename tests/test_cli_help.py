@@ -10,8 +10,8 @@ from typer.testing import CliRunner
 from mewa_bench.cli import app
 
 COMMANDS = [["evaluate"], ["record"], ["view"], ["leaderboard"], ["generate"], ["train"], ["info"],
-            ["suites", "verify"], ["datasets", "download"], ["datasets", "pack"], ["serve"], ["serve", "token", "create"],
-            ["serve", "worker"], ["submit"], ["status"], ["compare"]]
+            ["suites", "verify"], ["datasets", "download"], ["datasets", "pack"], ["datasets", "build"], ["serve"], ["serve", "token", "create"],
+            ["serve", "worker"], ["submit"], ["status"], ["compare"], ["results", "convert"]]
 
 
 @pytest.mark.parametrize("command", COMMANDS, ids=" ".join)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mewa_bench.design.suites import Suite, load_suite
-from mewa_bench.leaderboard import LeaderboardReport, build_leaderboards
+from mewa_bench.leaderboard import Entry, LeaderboardReport, build_leaderboards
 from mewa_bench.protocol.results import PROTOCOL_VERSION, SCHEMA_VERSION, read_results, write_results
 from mewa_bench.game.normalise import return_bounds
 from mewa_bench.protocol.config import default_seeds, env_seed
@@ -84,7 +84,7 @@ def invalid_variants(suite: Suite) -> dict[str, tuple[object, str]]:
     scores = dict(base["scores"])
     scores["mean"] = {**scores["mean"], "mean": scores["mean"]["mean"] + 0.01}
     tampered = {**base, "scores": scores}
-    odd_types = {**base, "units": [5] + base["units"][1:]}
+    odd_types = {**base, "schema_version": 2, "units": [5] + base["units"][1:]}  # a JSON list can hold anything
     few_seeds = {**base, "seeds": SEEDS[:3], "units": [u for u in base["units"] if u["seed"] < 3]}
     own_luck = edited_unit(base, 5, "env_seeds", 3, 12345)  # a run may not choose its episodes' seeds
     zero_steps = edited_unit(base, 6, "lengths", 0, 0)
@@ -120,7 +120,12 @@ def built(narrow: Suite, tmp_path_factory: pytest.TempPathFactory) -> tuple[Lead
     for file, (content, _) in invalid_variants(narrow).items():
         path = subs / "bad" / file
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(content if isinstance(content, str) else json.dumps(content))
+        if isinstance(content, str):
+            path.write_text(content)
+        elif content["schema_version"] == SCHEMA_VERSION:
+            write_results(path, content)  # the units as columns, as `evaluate` writes them
+        else:
+            path.write_text(json.dumps(content))
     out = root / "leaderboards"
     return build_leaderboards(subs, out), subs, out
 
@@ -229,22 +234,19 @@ def test_output_is_deterministic(built, tmp_path: Path) -> None:
 def test_the_board_leads_with_the_algorithms_table_and_rebuilds_it_byte_for_byte(built, tmp_path: Path) -> None:
     _, subs, out = built
     md = (out / "narrow-v1.md").read_text()
-    assert md.index("## Algorithms") < md.index("## Checkpoints") < md.index("| 1 | learner |")
+    assert md.index("## Algorithms") < md.index("| 1 | learner | 1 |") < md.index("## Checkpoints") < md.rindex(
+        "| 1 | learner |")
     assert "conditional on that checkpoint" in md and "1 run: no interval over training runs" in md
     rows = read_csv(out / "narrow-v1-algorithms.csv")
     assert [(r["rank"], r["algorithm"], r["runs"]) for r in rows] == [("", "oracle", "1"), ("1", "learner", "1"),
                                                                        ("2", "steady", "1"), ("3", "weak", "1")]
     again = build_leaderboards(subs, tmp_path / "again")
-    assert (tmp_path / "again" / "narrow-v1-algorithms.csv").read_bytes() == (out / "narrow-v1-algorithms.csv").read_bytes()
+    name = "narrow-v1-algorithms.csv"
+    assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes()
     assert again.written
 
 
-def test_runs_of_one_algorithm_share_a_row_and_no_two_lines_share_colour_and_style(narrow: Suite,
-                                                                                  tmp_path: Path) -> None:
-    from mewa_bench.leaderboard.board import make_board
-    from mewa_bench.leaderboard.plot import curves_figure
-    from mewa_bench.leaderboard.validate import SuiteCache, load_entry
-
+def test_runs_of_one_algorithm_share_a_row(narrow: Suite, tmp_path: Path) -> None:
     subs = tmp_path / "submissions"
     for i in range(3):
         folder = subs / f"algo-narrow-v1-seed{i}"
@@ -252,21 +254,40 @@ def test_runs_of_one_algorithm_share_a_row_and_no_two_lines_share_colour_and_sty
         (folder / "run.json").write_text(json.dumps({"algorithm": "algo", "seed": i, "suite": "narrow-v1"}))
         write_results(folder / "results-narrow-v1.json",
                       make_results(narrow, folder.name, 0.80 + 0.03 * i, 0.02, seed=20 + i))
-    for i in range(11):  # one-run algorithms named after their folders
-        write_submission(subs / f"other{i}", f"other{i}", 40 + i)
-        write_results(subs / f"other{i}" / "results-narrow-v1.json",
-                      make_results(narrow, f"other{i}", 0.5 + 0.01 * i, 0.0, seed=40 + i))
     report = build_leaderboards(subs, tmp_path / "boards")
     assert not report.invalid
     rows = read_csv(tmp_path / "boards" / "narrow-v1-algorithms.csv")
-    algo = next(r for r in rows if r["algorithm"] == "algo")
-    assert algo["runs"] == "3" and algo["note"] == "" and float(algo["mean_score_low"]) < float(algo["mean_score"])
-    assert len(rows) == 12
-    suites = SuiteCache()
-    board = make_board(narrow, [load_entry(p, suites) for p in sorted(subs.glob("*/results-*.json"))], "submissions")
+    assert [(r["algorithm"], r["runs"], r["note"]) for r in rows] == [("algo", "3", "")]
+    assert float(rows[0]["mean_score_low"]) < float(rows[0]["mean_score"]) < float(rows[0]["mean_score_high"])
+    assert len(read_csv(tmp_path / "boards" / "narrow-v1.csv")) == 3 + 5  # checkpoints and reference lines
+
+
+def synthetic_entry(suite: Suite, name: str, algorithm: str, level: float) -> Entry:
+    """A board entry whose scores are made up (no results file): level on every pair and episode."""
+    from mewa_bench.protocol.scoring import Comparison, Estimate, Scores
+
+    e = Estimate(level, level - 0.01, level + 0.01)
+    scores = Scores(curve=(e,) * K, mean=e, iqm=e, adaptability=Estimate(0.0, -0.01, 0.01), skill=e, raw={},
+                    comparisons={"best_fixed": Comparison(Estimate(level - 0.98, -1.0, -0.9), None)}, units=16,
+                    control_variates={}, pairs=tuple(range(len(suite.pairs))),
+                    pair_curves=np.full((len(suite.pairs), K), level))
+    return Entry(suite=suite.name, agent=name, path=Path(name) / "results.json", privileged=False, scores=scores,
+                 seeds=tuple(SEEDS), date="", package_version="", agent_sha256=name, algorithm=algorithm)
+
+
+def test_one_line_per_algorithm_and_no_two_lines_share_colour_and_style(narrow: Suite) -> None:
+    from mewa_bench.leaderboard.board import Board, make_board
+    from mewa_bench.leaderboard.plot import curves_figure
+
+    entries = [synthetic_entry(narrow, f"a-seed{i}", "a", 0.8 + 0.01 * i) for i in range(3)]
+    entries += [synthetic_entry(narrow, f"other{i}", f"other{i}", 0.5 + 0.02 * i) for i in range(11)]
+    board = make_board(narrow, entries, "submissions")
+    assert [r.runs for r in board.algorithms if r.algorithm == "a"] == [3] and len(board.algorithms) == 12
     lines = curves_figure(board).axes[0].get_lines()
     styles = [(tuple(np.round(matplotlib_rgba(line.get_color()), 4)), str(line.get_linestyle())) for line in lines]
-    assert len(lines) == 12 + 5 and len(set(styles)) == len(styles)
+    assert len(lines) == 12 + 5 and len(set(styles)) == len(styles)  # 12 algorithms: more than tab10's colours
+    checkpoints = curves_figure(Board(narrow, board.entries, ())).axes[0].get_lines()  # the service's boards
+    assert len(checkpoints) == len(entries) + 5
 
 
 def matplotlib_rgba(color: object) -> tuple[float, ...]:

@@ -231,10 +231,11 @@ def test_agent_uploads_are_checked_and_hostile_agents_fail_with_reasons(tmp_path
             "stopped: the submission's job on narrow-v1 was rejected first" in text
         page = get(server, f"/submissions/{leaky.json()['id']}").text
         hidden_row = page.split(f'<tr data-board="{HIDDEN}"')[1].split("</tr>")[0]
-        assert "LEAK" not in hidden_row and "on the hidden suite" in hidden_row
-        full = admin_view(server, leaky.json()["id"])["jobs"][1]
-        assert full["error"].startswith("the agent failed (exception): agent ") and ", pair " in full["error"]
-        assert "LEAK [[" in full["error"]
+        assert "LEAK" not in hidden_row and ("on the hidden suite" in hidden_row or "stopped: " in hidden_row)
+        full = admin_view(server, leaky.json()["id"])["jobs"][1]  # the admin sees the whole text, if it ran
+        assert full["error"] == "stopped: the submission's job on narrow-v1 was rejected first" or (
+            full["error"].startswith("the agent failed (exception): agent ") and ", pair " in full["error"]
+            and "LEAK [[" in full["error"]), full["error"]
         boards = {b["board"]: b["entries"] for b in get(server, "/api/leaderboards").json()}
         assert boards["narrow-v1"] == 1 and boards[HIDDEN] == 1  # only the good agent
     finally:

@@ -487,3 +487,24 @@ def test_the_fallback_says_what_it_does_not_hold(tmp_path):
     assert support.version == 0 or os.geteuid() != 0
     assert support.describe().startswith("no cgroup (")
     assert "not the memory of the sandbox's processes together" in support.describe()
+
+
+def test_groups_left_by_a_killed_worker_are_swept(sandbox):
+    from mewa_bench.service.cgroups import ROOT, Group, cgroup_support, sweep_stale
+
+    support = cgroup_support()
+    if support.version == 0:
+        pytest.skip(f"no control groups here: {support.describe()}")
+    dead = subprocess.Popen(["true"])
+    dead.wait()  # its pid names no process now
+    ours = Group.make(ROOT, support.version, (64 << 20, 8))
+    left = Group(ours.version, tuple(d.with_name(f"mewa-sandbox-{dead.pid}-0") for d in ours.directories))
+    for directory in left.directories:
+        directory.mkdir()
+    try:
+        removed = sweep_stale(ROOT, support.version)
+        assert set(left.directories) <= set(removed) and not any(d.exists() for d in left.directories)
+        assert all(d.exists() for d in ours.directories)  # a live process's group stays
+    finally:
+        ours.remove()
+        left.remove()

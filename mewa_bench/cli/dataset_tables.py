@@ -40,7 +40,8 @@ def buildable_table(specs: dict[str, Any], content: dict[str, Any]) -> Table:
 def evaluation_table(content: dict[str, Any]) -> Table:
     """The catalog's recordings of the curated test pairs (viewing only)."""
     table = Table("name", "version", "suite", "policy", "episodes", "frames", "size", "source",
-                  title="Evaluation recordings (curated TEST pairs, protocol seeds): for viewing only, never train on these")
+                  title="Evaluation recordings (curated TEST pairs, protocol seeds): "
+                        "for viewing only, never train on these")
     for e in content.get("evaluation_recordings", []):
         table.add_row(e["name"], e["version"], e["suite"], e["policy"], f"{e['episodes']:,}", f"{e['frames']:,}",
                       _size(e), _source(e))

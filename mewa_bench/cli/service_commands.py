@@ -64,7 +64,7 @@ def serve(ctx: typer.Context,
           scratch_mb: float = typer.Option(None, help="An agent job's scratch directory on disk, in MB (default 1024)."),
           memory_mb: float = typer.Option(None, help="Memory of an agent's process and of its sandbox as a whole, in "
                                                      "MB (default 4096)."),
-          rank_uploads: bool = typer.Option(False, "--rank-uploads", help="Rank self-reported results uploads beside "
+          rank_uploads: bool = typer.Option(False, "--rank-uploads", metavar="", help="Rank self-reported results uploads beside "
                                                                          "server-evaluated agents (default: unranked)."),
           log_level: str = typer.Option("info", help="debug, info, warning or error.")) -> None:
     """Serve the API (OpenAPI at /openapi.json, pages at /) with its evaluation workers, until Ctrl-C."""
@@ -187,7 +187,7 @@ def token_list(data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir",
 def serve_show(submission_id: int = typer.Argument(..., metavar="ID", help="The submission's id."),
                data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir", help=DATA_DIR_HELP),
                db: str = typer.Option(None, "--db", help=DB_HELP),
-               output: bool = typer.Option(False, "--output", help="Add what the agent printed, per job and attempt "
+               output: bool = typer.Option(False, "--output", metavar="", help="Add what the agent printed, per job and attempt "
                                                                    "(hidden suites' too).")) -> None:
     """The admin's view of a submission, as JSON: its hidden-suite jobs whole (errors, unit counts, every score)."""
     from sqlalchemy import select

@@ -1,13 +1,14 @@
 """Write a whole LeRobot v3.0 dataset at once from column arrays (lerobot's per-frame path is ~2,000 frames/s).
 
 The files are those lerobot 0.6.1's own writer (`add_frame` / `save_episode`) makes, with the same
-schemas: `data/chunk-XXX/file-YYY.parquet` (the frames, one row group per episode, snappy, the
+schemas: `data/chunk-XXX/file-YYY.parquet` (the frames, row groups of whole episodes, snappy, the
 `huggingface` features metadata; a new file past `data_files_size_in_mb`), `meta/info.json`,
 `meta/stats.json`, `meta/tasks.parquet` and `meta/episodes/chunk-000/file-000.parquet` (one row per
 episode: tasks, length, data file and frame range, per-episode statistics). Differences, all within
 the format (lerobot's reader never relies on them): a data row group may hold several episodes
 (`episodes_per_row_group`; lerobot writes one each, and ~3 ms per row group made that most of the
-writing time; training datasets use a row group per round of meta-episodes, ~10-20k frames), the episodes file is one row group (lerobot flushes every 10 episodes), statistics quantiles
+writing time; training datasets use a row group per round of meta-episodes, ~10-20k frames), the
+episodes file is one row group (lerobot flushes every 10 episodes), statistics quantiles
 are exact (numpy's linear interpolation) where lerobot approximates them with histograms,
 `stats.json` has sorted keys, and the parquet metadata has no random `fingerprint`, so the same
 columns always give the same bytes.
@@ -75,29 +76,42 @@ def _column(pa: Any, values: np.ndarray, ft: dict) -> Any:
 def episode_stats(values: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> dict[str, np.ndarray]:
     """Per-episode min, max, mean, std, count and quantiles of a column [F, k] (float64 [E, k] each)."""
     x = values.reshape(len(values), -1)
-    n_eps, width = len(lengths), int(lengths.max())
+    n_eps = len(lengths)
     owner = np.repeat(np.arange(n_eps), lengths)
-    slot = np.arange(len(x)) - starts[owner]
-    rows = np.arange(n_eps)
     out = {k: np.zeros((n_eps, x.shape[1])) for k in ("min", "max", "mean", "std", *_quantile_keys())}
-    padded = np.empty((n_eps, width))
     for j in range(x.shape[1]):
         column = x[:, j].astype(np.float64)
         mean = np.bincount(owner, weights=column, minlength=n_eps) / lengths
         out["mean"][:, j] = mean
         out["std"][:, j] = np.sqrt(np.bincount(owner, weights=(column - mean[owner]) ** 2, minlength=n_eps) / lengths)
-        padded.fill(np.inf)
-        padded[owner, slot] = column
-        padded.sort(axis=1)  # the padding (inf) goes last
-        out["min"][:, j], out["max"][:, j] = padded[:, 0], padded[rows, lengths - 1]
+        ranked = _ranked(column, owner, starts, lengths)  # ranked(e, r): the r-th smallest value of episode e
+        out["min"][:, j], out["max"][:, j] = ranked(np.zeros(n_eps, dtype=np.int64)), ranked(lengths - 1)
         for q, key in zip(QUANTILES, _quantile_keys()):
             pos = q * (lengths - 1)
             lo = np.floor(pos).astype(np.int64)
-            hi = np.minimum(lo + 1, lengths - 1)
-            low, high = padded[rows, lo], padded[rows, hi]
+            low, high = ranked(lo), ranked(np.minimum(lo + 1, lengths - 1))
             out[key][:, j] = low + (pos - lo) * (high - low)
     out["count"] = lengths[:, None].astype(np.int64)
     return out
+
+
+SMALL_RANGE = 64  # integer columns spanning fewer values are ranked by counting, not sorting
+
+
+def _ranked(column: np.ndarray, owner: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> Any:
+    """A function (episodes' ranks [E] -> values [E]) giving each episode's r-th smallest value."""
+    n_eps = len(lengths)
+    low, high = float(column.min()), float(column.max())
+    if high - low < SMALL_RANGE and np.array_equal(column, np.round(column)):
+        levels = int(high - low) + 1
+        counts = np.bincount(owner * levels + (column - low).astype(np.int64), minlength=n_eps * levels)
+        cumulative = np.cumsum(counts.reshape(n_eps, levels), axis=1)
+        return lambda rank: low + (cumulative <= rank[:, None]).sum(axis=1)
+    padded = np.full((n_eps, int(lengths.max())), np.inf)
+    padded[owner, np.arange(len(column)) - starts[owner]] = column
+    padded.sort(axis=1)  # the padding (inf) goes last
+    rows = np.arange(n_eps)
+    return lambda rank: padded[rows, rank]
 
 
 def _quantile_keys() -> tuple[str, ...]:

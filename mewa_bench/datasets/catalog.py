@@ -189,7 +189,8 @@ def add_to_catalog(catalog_path: Path | str, entry: dict[str, Any]) -> dict[str,
     catalog = load_catalog(catalog_path, resolve=False) if catalog_path.exists() else empty_catalog()
     same = lambda e: (e["name"], e["version"]) == (entry["name"], entry["version"])  # noqa: E731
     for section in SECTIONS.values():  # an entry may change kind: drop it from the other section
-        catalog[section] = [e for e in catalog.get(section, []) if not same(e) or section == SECTIONS[entry_kind(entry)]]
+        keep = section == SECTIONS[entry_kind(entry)]
+        catalog[section] = [e for e in catalog.get(section, []) if keep or not same(e)]
     datasets = catalog[SECTIONS[entry_kind(entry)]]
     index = next((i for i, e in enumerate(datasets) if same(e)), None)
     if index is None:

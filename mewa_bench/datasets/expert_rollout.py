@@ -96,8 +96,10 @@ def play_expert_parallel(path: Path, suite: str, tasks: tuple[Task, ...], task_i
 
     if jobs <= 1 or len(keys) < 2:
         return play_expert(path, suite, tasks, task_idx, workers, keys, seeds)
+    import multiprocessing
+
     chunks = np.array_split(np.arange(len(keys)), min(jobs * 4, len(keys)))
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         parts = list(pool.map(play_expert, *zip(*[(path, suite, tasks, task_idx[c], workers[c], keys[c], seeds[c])
                                                    for c in chunks])))
     return concat_played(parts)

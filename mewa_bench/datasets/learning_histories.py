@@ -56,7 +56,8 @@ def sample_posterior(log_post: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.minimum(np.sum(cdf < (u * cdf[:, -1])[:, None], axis=1), log_post.shape[1] - 1)
 
 
-def play_histories(task: Task, workers: np.ndarray, keys: np.ndarray, rng: np.random.Generator) -> tuple[Played, np.ndarray]:
+def play_histories(task: Task, workers: np.ndarray, keys: np.ndarray,
+                   rng: np.random.Generator) -> tuple[Played, np.ndarray]:
     """Histories of len(keys[0]) episodes, one per worker; keys [L, H]. Returns the frames (history-major,
     then episode order) and the t-optimal policy index each episode played, int64 [L, H]."""
     model = learner_model(task)

@@ -28,6 +28,7 @@ from mewa_bench.datasets.tiers import (ADAPTIVE, PROTOCOL_EPISODES, TIERS, TierR
                                        reference_policies, tier_policies)
 from mewa_bench.datasets.training_keys import TrainingDataError, check_training_keys, training_luck_keys
 from mewa_bench.datasets.training_workers import check_training_workers, sample_training_pairs
+from mewa_bench.design.curate import MIN_BEST_RETURN
 from mewa_bench.design.exact import expected_returns
 from mewa_bench.design.references import round_floats
 from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
@@ -205,7 +206,7 @@ def _frame_columns(spec: TrainingSpec, suite: Suite, rounds: list[_Round]) -> tu
         if rnd.expected is not None:
             expected = rnd.expected[p.episode]
             add["expected_return"] = expected
-            add["expected_score"] = expected / rnd.max_expected[meta_local]
+            add["expected_score"] = expected / np.maximum(rnd.max_expected[meta_local], MIN_BEST_RETURN)
         for k, v in add.items():
             cols.setdefault(k, []).append(v)
         per_episode["lengths"].append(p.lengths)
@@ -254,10 +255,11 @@ COLUMN_DOCS = {
     "worker": "the meta-train worker's mistake probabilities (float64, unused components 0)",
     "luck_key": "the episode's luck key (training key space, never a protocol key): MewaEnv "
                 "reset(options={'task', 'worker', 'luck_key'}) with the stored actions replays the episode",
-    "behaviour_policy": "index into meta/mewa.json behaviour.policies of the fixed policy the episode played "
-                        f"({ADAPTIVE}: an adaptive agent)",
+    "behaviour_policy": "index into meta/mewa.json behaviour.policies[suite_task_index] of the fixed policy the "
+                        f"episode played ({ADAPTIVE}: an adaptive agent, no fixed policy)",
     "expected_return": "exact expected normalised return of the episode's behaviour for this worker",
-    "expected_score": "expected_return / the worker's max-expected baseline (the protocol's score scale)",
+    "expected_score": "expected_return / the worker's max-expected baseline (the protocol's score scale; the "
+                      f"baseline floored at {MIN_BEST_RETURN}, the curation's least usable value)",
 }
 
 
@@ -306,7 +308,8 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
                           "command": f"mewa-bench evaluate AGENT.py --suite {suite.name}"},
         "tier": spec.tier,
         "behaviour": {"tier": spec.tier, "source": source.relative_to(source.parents[2]).as_posix(),
-                      "sha256": file_sha256(source), "policies": list(tier_policies(spec.tier, suite.tasks[0].N)),
+                      "sha256": file_sha256(source),
+                      "policies": [list(tier_policies(spec.tier, task.N)) for task in suite.tasks],
                       "expert_agent": spec.expert_agent if spec.tier == "expert" else None},
         "worker_distribution": {"name": "meta-train", "tasks": _distribution(suite),
                                 "task_choice": "uniform over the suite's tasks, per meta-episode"},
@@ -363,8 +366,9 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     while frames < spec.frames:
         played.append(_play_round(spec, suite, len(played) * spec.meta_batch, rng, jobs))
         frames += sum(len(g.run.played.t) for g in played[-1][3])
-    jobs_args = [(suite.tasks[int(task_idx[g.rows[0]])], workers[g.rows], g.run.played.episode // spec.episodes_per_worker,
-                  g.run.played.t, g.run.played.state) for task_idx, workers, _, groups in played for g in groups]
+    h = spec.episodes_per_worker
+    jobs_args = [(suite.tasks[int(task_idx[g.rows[0]])], workers[g.rows], g.run.played.episode // h, g.run.played.t,
+                  g.run.played.state) for task_idx, workers, _, groups in played for g in groups]
     clock.append(time.perf_counter())
     exact = _map(exact_values, jobs_args, jobs)
     clock.append(time.perf_counter())
@@ -456,5 +460,4 @@ def load_training_dataset(root: Path | str, repo_id: str | None = None) -> Any:
 
     meta = check_training_dataset(root)
     lerobot_dataset = require("lerobot.datasets.lerobot_dataset", "datasets", "loading a training dataset")
-    return lerobot_dataset.LeRobotDataset(repo_id or meta["dataset_id"].rsplit("-v", 1)[0], root=Path(root),
-                                          video_backend="pyav")
+    return lerobot_dataset.LeRobotDataset(repo_id or meta["dataset_id"], root=Path(root), video_backend="pyav")

@@ -7,7 +7,7 @@ from typing import Sequence
 
 from mewa_bench.design.suites import Suite
 from mewa_bench.leaderboard.validate import Entry
-from mewa_bench.protocol.aggregate import Comparison, Run, aggregate
+from mewa_bench.protocol.aggregate import AlgorithmComparison, Run, aggregate
 from mewa_bench.protocol.scoring import Estimate, reference_line_cells
 
 
@@ -35,12 +35,13 @@ def entry_runs(entries: Sequence[Entry]) -> list[Run]:
     return [Run(name=e.agent, algorithm=e.algorithm or e.agent, curves=e.scores.pair_curves) for e in entries]
 
 
-def compare_entries(suite: Suite, entries: Sequence[Entry]) -> Comparison:
+def compare_entries(suite: Suite, entries: Sequence[Entry]) -> AlgorithmComparison:
     """Algorithm-level statistics of a suite's entries, against the suite's exact reference lines."""
     return aggregate(entry_runs(entries), reference_line_cells(suite))
 
 
-def algorithm_rows(suite: Suite, entries: Sequence[Entry], comparison: Comparison) -> tuple[AlgorithmRow, ...]:
+def algorithm_rows(suite: Suite, entries: Sequence[Entry],
+                   comparison: AlgorithmComparison) -> tuple[AlgorithmRow, ...]:
     """The table's rows, best mean first; privileged algorithms unranked; equal means share a rank."""
     from mewa_bench.leaderboard.board import competition_ranks
 

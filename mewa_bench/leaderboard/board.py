@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from mewa_bench.design.suites import Suite
 from mewa_bench.leaderboard.validate import Entry
-from mewa_bench.protocol.aggregate import Comparison
+from mewa_bench.protocol.aggregate import AlgorithmComparison
 
 AGENT, PRIVILEGED, REFERENCE = "agent", "privileged", "reference"
 # The suite's reference lines (keys of suite.summary["score"] and ["skill"]) and their labels.
@@ -56,7 +56,7 @@ class Board:
     suite: Suite
     entries: tuple[Entry, ...]
     rows: tuple[Row, ...]
-    comparison: Comparison | None = None
+    comparison: AlgorithmComparison | None = None
     algorithms: tuple = ()  # leaderboard.algorithms.AlgorithmRow
 
 

@@ -15,7 +15,7 @@ from typing import Any, Sequence
 from mewa_bench.design.suites import Suite
 from mewa_bench.leaderboard.algorithms import entry_runs
 from mewa_bench.leaderboard.validate import Entry, InvalidResults, SuiteCache, check_run, finished_date, verified_scores
-from mewa_bench.protocol.aggregate import Comparison, aggregate
+from mewa_bench.protocol.aggregate import AlgorithmComparison, aggregate
 from mewa_bench.protocol.results import ResultsError, read_results
 from mewa_bench.protocol.run_info import RunInfoError, read_run_info
 from mewa_bench.protocol.scoring import Estimate, reference_line_cells
@@ -31,7 +31,7 @@ class Compared:
 
     suite: Suite
     entries: tuple[Entry, ...]
-    comparison: Comparison
+    comparison: AlgorithmComparison
 
 
 def expand(items: Sequence[str], suite: str | None) -> list[Path]:
@@ -134,7 +134,8 @@ def compare_figure(compared: Compared, path: Path) -> None:
     colors = colormaps["tab10"].colors
     for i, algo in enumerate(compared.comparison.algorithms):
         c, style = line_style(i)
-        label = f"{algo.algorithm.replace('$', chr(92) + '$')} ({len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''})"
+        name = algo.algorithm.replace("$", r"\$")  # a name is text, never mathtext
+        label = f"{name} ({len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''})"
         for ax, xs, estimates in ((curves, np.arange(1, len(algo.curve) + 1), algo.curve),
                                   (profiles, np.array(PROFILE_THRESHOLDS), algo.profile)):
             ax.plot(xs, [e.mean for e in estimates], color=colors[c], ls=style, label=label,

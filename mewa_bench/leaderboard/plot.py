@@ -8,6 +8,7 @@ import numpy as np
 
 from mewa_bench.leaderboard.board import Board, reference_rows
 from mewa_bench.protocol.config import EPISODES_PER_PAIR
+from mewa_bench.protocol.scoring import Estimate
 from mewa_bench.reports.figures import save_png
 
 # One (grey, dash pattern) per reference line, so that five lines stay apart in print and on screen.
@@ -34,29 +35,39 @@ def curves_figure(board: Board):
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     colors = colormaps["tab10"].colors
-    algorithms = board.comparison.algorithms if board.comparison is not None else ()
-    privileged = {r.algorithm for r in board.algorithms if r.privileged}
-    for i, algo in enumerate(algorithms):
-        x = np.arange(1, len(algo.curve) + 1)
+    lines = _lines(board)
+    for i, (label, curve) in enumerate(lines):
+        x = np.arange(1, len(curve) + 1)
         color, style = line_style(i)
-        name = algo.algorithm.replace("$", r"\$")  # a name is text, never mathtext
-        label = f"{name} ({len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''})"
-        label += " (privileged)" if algo.algorithm in privileged else ""
-        ax.plot(x, [e.mean for e in algo.curve], marker="o", ms=3, color=colors[color], ls=style, label=label)
-        if algo.curve[0].low is not None:
-            ax.fill_between(x, [e.low for e in algo.curve], [e.high for e in algo.curve], color=colors[color],
-                            alpha=0.15, lw=0)
-    k = len(algorithms[0].curve) if algorithms else EPISODES_PER_PAIR
+        ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=colors[color], ls=style, label=label)
+        if curve[0].low is not None:
+            ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=colors[color], alpha=0.15, lw=0)
+    k = len(lines[0][1]) if lines else EPISODES_PER_PAIR
     for row, (grey, dashes) in zip(reference_rows(board.suite), _REFERENCE_STYLES):
         ax.axhline(row.mean, ls=dashes, lw=1.2, color=grey, label=f"{row.name} (exact)")
     ax.set_xticks(range(1, k + 1))
     ax.set_xlim(0.7, k + 0.3)
     ax.set_xlabel("episode k with the same hidden worker")
     ax.set_ylabel("score s_k (1 = max expected)")
-    ax.set_title(f"{board.suite.name}: adaptation curves per algorithm (mean, 95% CI over training runs)", fontsize=10)
+    what = ("per algorithm (mean, 95% CI over training runs)" if board.comparison is not None
+            else "(mean and 95% CI over pairs x seeds)")
+    ax.set_title(f"{board.suite.name}: adaptation curves {what}", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     return fig
+
+
+def _lines(board: Board) -> list[tuple[str, tuple[Estimate, ...]]]:
+    """(legend label, curve) per algorithm, or per entry for a board without algorithms (CIs of checkpoints)."""
+    privileged = {r.algorithm for r in board.algorithms if r.privileged} | {e.agent for e in board.entries
+                                                                           if e.privileged and board.comparison is None}
+    if board.comparison is not None:
+        named = [(a.algorithm, f" ({len(a.runs)} run{'s' if len(a.runs) > 1 else ''})", a.curve)
+                 for a in board.comparison.algorithms]
+    else:
+        named = [(e.agent, "", e.scores.curve) for e in board.entries]
+    return [(name.replace("$", r"\$") + runs + (" (privileged)" if name in privileged else ""), curve)
+            for name, runs, curve in named]  # a name is text, never mathtext
 
 
 def plot_curves(board: Board, path: Path) -> None:

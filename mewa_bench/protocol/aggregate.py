@@ -77,7 +77,7 @@ class AlgorithmScores:
 
 
 @dataclass(frozen=True)
-class Comparison:
+class AlgorithmComparison:
     """Algorithms of one suite, best mean first, and P(X > Y) for every ordered pair (X, Y)."""
 
     algorithms: tuple[AlgorithmScores, ...]
@@ -124,7 +124,7 @@ def improvement_probability(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def aggregate(runs: Sequence[Run], lines: dict[str, np.ndarray], samples: int = BOOTSTRAP_SAMPLES,
-              seed: int = BOOTSTRAP_SEED) -> Comparison:
+              seed: int = BOOTSTRAP_SEED) -> AlgorithmComparison:
     """Group runs by algorithm and estimate everything; `lines` maps a reference line to its exact score per pair."""
     groups: dict[str, list[Run]] = {}
     for run in sorted(runs, key=lambda r: (r.algorithm, r.name)):
@@ -145,7 +145,7 @@ def aggregate(runs: Sequence[Run], lines: dict[str, np.ndarray], samples: int = 
                 boot = improvement_probability(x[idx[a]], y[idx[b]])
                 n = min(len(x), len(y))
                 improvement[(a, b)] = bootstrap_interval(point, boot, n, n - 1, (0.0, 1.0))
-    return Comparison(tuple(scores), improvement, samples, seed)
+    return AlgorithmComparison(tuple(scores), improvement, samples, seed)
 
 
 def _algorithm(name: str, run_names: list[str], curves: np.ndarray, idx: np.ndarray,

@@ -107,7 +107,7 @@ def _validate(results: Any, where: str) -> dict[str, Any]:
         if key not in results["suite"]:
             raise ResultsError(f"{where}: suite.{key} is missing")
     k = results["episodes_per_pair"]
-    if schema >= COLUMNAR:
+    if schema == COLUMNAR:
         results = {**results, "units": _decoded_units(results, where)}
     elif not isinstance(results["units"], list):
         raise ResultsError(f"{where}: units must be a list in schema {schema}")

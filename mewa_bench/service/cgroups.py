@@ -222,6 +222,24 @@ class Group:
                     time.sleep(0.02)
 
 
+def sweep_stale(root: Path, version: int) -> list[Path]:
+    """Remove the groups left by processes that died without removing theirs (a killed worker); returns them."""
+    if version == 1:
+        parents = list((_v1_parents(root) or {}).values())
+    else:
+        parents = [p for p in [_v2_parent(root)] if p is not None]
+    removed = []
+    for parent in parents:
+        for directory in parent.glob(f"{GROUP_PREFIX}-*-*"):
+            owner = directory.name.split("-")[-2]
+            if owner.isdigit() and not Path("/proc", owner).exists():
+                group = Group(version, (directory,))
+                group.remove()
+                if not directory.exists():
+                    removed.append(directory)
+    return removed
+
+
 def _enable_v2_controllers(parent: Path) -> None:
     """Let groups under `parent` use the memory and pids controllers."""
     control = parent / "cgroup.subtree_control"

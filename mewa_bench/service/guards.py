@@ -2,8 +2,9 @@
 
 Security headers: a content security policy (the pages load nothing from elsewhere and run no
 script), no framing, no MIME sniffing, no referrer. The upload gate answers a 503 JSON error with
-Retry-After when `limit` submissions are already being received, before reading the body, so a
-burst of large uploads cannot pile up in the API process.
+Retry-After when `limit` submissions are already being received: it reads the refused request's
+body and drops it as it comes (nothing is kept, so a burst of large uploads cannot pile up in the
+API process; a client that is still sending would otherwise see its connection reset, not the 503).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ SECURITY_HEADERS = (
     (b"referrer-policy", b"no-referrer"),
 )
 RETRY_SECONDS = 1
+DRAIN_LIMIT = 256 << 20  # past this many bytes of a refused body, the connection is closed instead
 
 
 class SecurityHeaders:
@@ -63,7 +65,8 @@ class UploadGate:
             if admitted:
                 self.in_flight += 1
         if not admitted:
-            await _busy(send, self.limit)
+            drained = await _drain(receive)
+            await _busy(send, self.limit, close=not drained)
             return
         try:
             await self.app(scope, receive, send)
@@ -72,11 +75,25 @@ class UploadGate:
                 self.in_flight -= 1
 
 
-async def _busy(send: Callable, limit: int) -> None:
+async def _drain(receive: Callable) -> bool:
+    """Read a request's body and drop it; False if the client went away or it passed DRAIN_LIMIT."""
+    seen = 0
+    while True:
+        message = await receive()
+        if message["type"] != "http.request":
+            return False
+        seen += len(message.get("body", b""))
+        if seen > DRAIN_LIMIT:
+            return False
+        if not message.get("more_body", False):
+            return True
+
+
+async def _busy(send: Callable, limit: int, close: bool) -> None:
     """The 503 JSON answer."""
     body = json.dumps({"error": "busy", "detail": f"the server is receiving {limit} submissions already, its limit; "
                                                   f"retry in {RETRY_SECONDS} s"}).encode()
-    await send({"type": "http.response.start", "status": 503,
-                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                            (b"retry-after", str(RETRY_SECONDS).encode()), (b"connection", b"close")]})
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+               (b"retry-after", str(RETRY_SECONDS).encode())] + ([(b"connection", b"close")] if close else [])
+    await send({"type": "http.response.start", "status": 503, "headers": headers})
     await send({"type": "http.response.body", "body": body})

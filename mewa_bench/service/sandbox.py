@@ -68,7 +68,7 @@ from typing import Any, Callable, ClassVar
 from mewa_bench.protocol.isolation import (DEFAULT_MEMORY_LIMIT, DEFAULT_TIME_LIMIT, Launcher, report_violation,
                                            with_agent_threads)
 from mewa_bench.service.agent_output import OutputCapture
-from mewa_bench.service.cgroups import ROOT, Group, cgroup_support
+from mewa_bench.service.cgroups import ROOT, Group, cgroup_support, sweep_stale
 from mewa_bench.service.watchdog import Stop, Watchdog
 
 SANDBOX_UID = 65534  # nobody
@@ -215,7 +215,14 @@ def _make_group(limits: SandboxLimits) -> Group | None:
     support = cgroup_support(ROOT)
     if support.version == 0:
         return None
+    _sweep_once(support.version)
     return Group.make(ROOT, support.version, (_group_memory(limits), limits.processes))
+
+
+@functools.lru_cache(maxsize=1)
+def _sweep_once(version: int) -> None:
+    """Once per process: remove the groups that killed workers left behind."""
+    sweep_stale(ROOT, version)
 
 
 def _stopped(stop: Stop, agent_file: Path, units: tuple[int, int], out: Path) -> Exception:

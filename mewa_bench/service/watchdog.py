@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 POLL_SECONDS = 0.25
+SCRATCH_EVERY = 4  # polls between two walks of the scratch directory
 MAX_SCRATCH_ENTRIES = 200_000  # files and directories in the scratch directory
 
 
@@ -57,6 +58,7 @@ class Watchdog:
         self._wall, self._memory, self._oom_kills, self._cancel = wall_seconds, memory_bytes, oom_kills, cancel
         self._poll = poll_seconds
         self._started = time.monotonic()
+        self._polls = 0
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._run, name="sandbox-watchdog", daemon=True)
         self.stop: Stop | None = None
@@ -82,6 +84,9 @@ class Watchdog:
                                      f"was stopped mid-call after {elapsed:.1f} s")
         if (stop := self.check_memory()) is not None:
             return stop
+        self._polls += 1
+        if self._polls % SCRATCH_EVERY:
+            return None
         used, entries = scratch_usage(self._scratch, self._scratch_bytes)
         if used > self._scratch_bytes:
             return Stop("scratch_size", f"the agent's scratch directory grew past its limit of {self._scratch_bytes:,} "
