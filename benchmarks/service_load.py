@@ -71,6 +71,7 @@ class Sent:
     body: bytes = b""
     agent_args: dict[str, str] = field(default_factory=dict)
     busy: int = 0  # 503 answers (the server receiving its limit of submissions at once), each retried
+    resets: int = 0  # connections the server closed before answering, each retried
 
 
 # -- the load --------------------------------------------------------------------------------------
@@ -120,14 +121,22 @@ async def send(client: Any, url: str, item: Sent, jitter: random.Random) -> None
     answered."""
     headers = {"Authorization": f"Bearer {item.token}"}
     item.sent = time.perf_counter()
+    import httpx
+
     while True:
-        if item.kind == "results":
-            response = await client.post(f"{url}/api/submissions/results", headers=headers,
-                                         files={"file": (f"{item.name}.json", item.body, "application/json")})
-        else:
-            data = {"suite": SUITE, "name": item.name, "agent_arg": [f"{k}={v}" for k, v in item.agent_args.items()]}
-            response = await client.post(f"{url}/api/submissions/agent", headers=headers, data=data,
-                                         files={"agent": (AGENT.name, AGENT.read_bytes(), "text/x-python")})
+        try:
+            if item.kind == "results":
+                response = await client.post(f"{url}/api/submissions/results", headers=headers,
+                                             files={"file": (f"{item.name}.json", item.body, "application/json")})
+            else:
+                data = {"suite": SUITE, "name": item.name,
+                        "agent_arg": [f"{k}={v}" for k, v in item.agent_args.items()]}
+                response = await client.post(f"{url}/api/submissions/agent", headers=headers, data=data,
+                                             files={"agent": (AGENT.name, AGENT.read_bytes(), "text/x-python")})
+        except (httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError):
+            item.resets += 1
+            await asyncio.sleep(jitter.uniform(0.2, 1.0))
+            continue
         if response.status_code != 503:
             break
         item.busy += 1
@@ -357,7 +366,8 @@ def report(items: list[Sent], start: float, burst_end: float, base: Baseline, wo
     accept_rate, score_rate = len(uploads) / accepted_by, len(uploads) / scored_by
     busy = sum(i.busy for i in items)
     print(f"\nburst: {len(items)} requests answered in {burst_end - start:.2f} s ({busy} busy answers (503) retried "
-          f"by {sum(1 for i in items if i.busy)} of them: the server receives a few submissions at once)")
+          f"by {sum(1 for i in items if i.busy)} of them: the server receives a few submissions at once; "
+          f"{sum(i.resets for i in items)} connections reset and retried)")
     print(f"{'throughput':<44}{'measured':>12}{'baseline':>12}{'ratio':>8}")
     print(f"{'results uploads accepted/s (API: 1 process)':<44}{accept_rate:>12.1f}{1 / base.check:>12.1f}"
           f"{accept_rate * base.check:>8.2f}")

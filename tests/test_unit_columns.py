@@ -230,8 +230,9 @@ def test_values_a_column_cannot_hold_exactly_are_refused_when_writing(tmp_path: 
 
 
 def small_run(tmp_path: Path, name: str, **kw) -> EvalConfig:
-    return EvalConfig(agent_path=RANDOM / "agent.py", out=tmp_path / name, seeds=(0, 1), pairs=(0, 1, 2),
-                      isolated=False, **kw)
+    """The random agent in-process on seeds 0 and 1 of narrow-v1 (pairs 0-2 unless `pairs` is given)."""
+    return EvalConfig(**{"agent_path": RANDOM / "agent.py", "out": tmp_path / name, "seeds": (0, 1),
+                         "pairs": (0, 1, 2), "isolated": False, **kw})
 
 
 @pytest.mark.parametrize("schema", [3, 2])
@@ -246,3 +247,24 @@ def test_a_run_resumes_from_a_partial_file_and_writes_schema_3(tmp_path: Path, s
     assert stable_view(resumed) == stable_view(full) and resumed["schema_version"] == 3
     assert same_units(read_results(out)["units"], full["units"]) is None
     assert json.loads(out.read_text())["units"]["count"] == 6
+
+
+def test_the_service_takes_a_schema_3_upload_as_the_same_run_as_its_schema_2_twin(tmp_path: Path) -> None:
+    from mewa_bench.service.errors import ApiError
+    from mewa_bench.service.scoring import score_upload
+    from mewa_bench.service.settings import Settings
+    from mewa_bench.service.uploads import check_results
+
+    full, _ = evaluate(small_run(tmp_path, "run.json", pairs=None))
+    settings = Settings(data_dir=tmp_path / "data", seeds=2)
+    schema3 = (tmp_path / "run.json").read_bytes()
+    schema2 = json_text(as_schema(full, 2)).encode()
+    three, two = check_results(schema3, settings, SuiteCache()), check_results(schema2, settings, SuiteCache())
+    assert three.digest == two.digest  # the same episodes: one run, whichever layout carries them
+    assert same_units(three.results["units"], two.results["units"]) is None
+    scored = [score_upload(json.loads(data), (0, 1), 1) for data in (schema3, schema2)]
+    assert scored[0].scores == scored[1].scores == json_text(full["scores"])
+    raw = json.loads(schema3)
+    raw["units"]["columns"]["lengths"]["shape"] = [1, 10]
+    with pytest.raises(ApiError, match=r"results file: units column lengths: shape \[1, 10\]"):
+        check_results(json_text(raw).encode(), settings, SuiteCache())

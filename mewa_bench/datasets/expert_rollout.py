@@ -96,10 +96,22 @@ def play_expert_parallel(path: Path, suite: str, tasks: tuple[Task, ...], task_i
 
     if jobs <= 1 or len(keys) < 2:
         return play_expert(path, suite, tasks, task_idx, workers, keys, seeds)
+    chunks = np.array_split(np.arange(len(keys)), min(jobs * 4, len(keys)))
+    parts = list(_pool(jobs).map(play_expert, *zip(*[(path, suite, tasks, task_idx[c], workers[c], keys[c], seeds[c])
+                                                     for c in chunks])))
+    return concat_played(parts)
+
+
+_POOLS: dict[int, ProcessPoolExecutor] = {}
+
+
+def _pool(jobs: int) -> ProcessPoolExecutor:
+    """A process pool kept for the life of the process (its processes keep the agent and its task models
+    loaded from one round of meta-episodes to the next); shut down at exit."""
+    import atexit
     import multiprocessing
 
-    chunks = np.array_split(np.arange(len(keys)), min(jobs * 4, len(keys)))
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        parts = list(pool.map(play_expert, *zip(*[(path, suite, tasks, task_idx[c], workers[c], keys[c], seeds[c])
-                                                   for c in chunks])))
-    return concat_played(parts)
+    if jobs not in _POOLS:
+        _POOLS[jobs] = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"))
+        atexit.register(_POOLS[jobs].shutdown)
+    return _POOLS[jobs]

@@ -366,11 +366,8 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     while frames < spec.frames:
         played.append(_play_round(spec, suite, len(played) * spec.meta_batch, rng, jobs))
         frames += sum(len(g.run.played.t) for g in played[-1][3])
-    h = spec.episodes_per_worker
-    jobs_args = [(suite.tasks[int(task_idx[g.rows[0]])], workers[g.rows], g.run.played.episode // h, g.run.played.t,
-                  g.run.played.state) for task_idx, workers, _, groups in played for g in groups]
     clock.append(time.perf_counter())
-    exact = _map(exact_values, jobs_args, jobs)
+    exact = _exact_by_group(spec, suite, played, jobs)
     clock.append(time.perf_counter())
     rounds, k = [], 0
     for task_idx, workers, keys, groups in played:
@@ -397,6 +394,40 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     if timings is not None:
         timings.update(zip(("play", "exact", "write"), np.diff(clock).tolist()))
     return meta
+
+
+EXACT_BATCH = 256  # workers per exact job: the groups of one task are pooled across rounds up to this many
+
+
+def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs: int) -> list[tuple]:
+    """`exact_values` of every (round, task) group, in order. Groups of one task are pooled into jobs of about
+    EXACT_BATCH workers (a wide suite's round holds a few workers per task; each worker's numbers are
+    computed column by column, so pooling changes no value)."""
+    h = spec.episodes_per_worker
+    groups = [(int(task_idx[g.rows[0]]), workers[g.rows], g.run.played) for task_idx, workers, _, gs in played
+              for g in gs]
+    jobs_args, members = [], []
+    for i, task in enumerate(suite.tasks):
+        mine = [k for k, g in enumerate(groups) if g[0] == i]
+        while mine:
+            batch, count = [], 0
+            while mine and (count == 0 or count + len(groups[mine[0]][1]) <= EXACT_BATCH):
+                batch.append(mine.pop(0))
+                count += len(groups[batch[-1]][1])
+            offsets = np.cumsum([0] + [len(groups[k][1]) for k in batch[:-1]])
+            jobs_args.append((task, np.concatenate([groups[k][1] for k in batch]),
+                              np.concatenate([groups[k][2].episode // h + o for k, o in zip(batch, offsets)]),
+                              np.concatenate([groups[k][2].t for k in batch]),
+                              np.concatenate([groups[k][2].state for k in batch])))
+            members.append(batch)
+    out: list[tuple] = [()] * len(groups)
+    for batch, (labels, optimum, values) in zip(members, _map(exact_values, jobs_args, jobs)):
+        frame_edges = np.cumsum([0] + [len(groups[k][2].t) for k in batch])
+        worker_edges = np.cumsum([0] + [len(groups[k][1]) for k in batch])
+        for j, k in enumerate(batch):
+            w = slice(worker_edges[j], worker_edges[j + 1])
+            out[k] = (labels[frame_edges[j] : frame_edges[j + 1]], optimum[w], values[:, w])
+    return out
 
 
 def _map(function: Any, args: list[tuple], jobs: int) -> list:

@@ -57,7 +57,8 @@ PREDICTED = ("normalised_returns", "scores")
 # 8-byte values: no literal context, positions aligned to 8 bytes; a 4 MiB window holds a column of 50,000 units.
 # Preset 1: files 3-4% larger than with preset 6, written 5x faster (a run rewrites its file as units finish)
 FILTERS = ({"id": lzma.FILTER_LZMA2, "preset": 1, "dict_size": 1 << 22, "lc": 0, "lp": 3, "pb": 3},)
-MAX_UNITS = 1_000_000  # far beyond any run (a ranked wide run has 7,680): bounds what a file can make a reader allocate
+# ten times the largest protocol run (256 seeds x 80 pairs): bounds what a small file can make a reader allocate
+MAX_UNITS = 200_000
 _KEYS = {"count", "derived", "predictors", "columns"}
 _PREDICTORS = ("low", "span", "max_expected")
 _COLUMN_KEYS = {"dtype", "shape", "xz_base64"}
@@ -91,7 +92,7 @@ def suite_predictors(name: str, sha256: str) -> Predictors | None:
                       tuple(float(p.max_expected) for p in suite.pairs))
 
 
-@lru_cache(maxsize=1 << 16)
+@lru_cache(maxsize=1 << 14)  # two ranked wide runs' units
 def protocol_env_seeds(suite_hash: str, pair: int, seed: int, episodes: int) -> tuple[int, ...]:
     """The env seeds the protocol gives a unit's episodes (cached: a run's file is written many times)."""
     return tuple(env_seed(suite_hash, pair, seed, k) for k in range(episodes))
