@@ -517,3 +517,20 @@ def test_hub_entry_in_catalog(tmp_path, monkeypatch):
 def test_unknown_source(tmp_path):
     with pytest.raises(DatasetError, match="not a catalog dataset"):
         download("no-such-thing", None, tmp_path)
+
+
+def test_a_vector_agent_records_the_same_frames_as_its_one_lane_twin(tmp_path):
+    """`record` plays batched agents in isolated lanes; the dataset equals the one-lane twin's, frame by frame."""
+    agents = REPO / "tests" / "agents"
+    frames = {}
+    for name, lanes in (("vector_agent", 4), ("vector_twin_agent", 1)):
+        sink = LeRobotSink(tmp_path / name, REPO_ID)
+        config = EvalConfig(agent_path=agents / f"{name}.py", out=tmp_path / f"{name}.json", seeds=(0, 1),
+                            pairs=(0, 3), lanes=lanes, agent_args={"sampled": "true", "seed": "2"})
+        results, _ = evaluate(config, sinks=[sink])
+        df = read_frames(tmp_path / name)
+        assert len(df) == sum(sum(u["lengths"]) for u in results["units"])
+        assert len(load_lerobot(tmp_path / name)) == len(df)
+        keys = ["pair_index", "seed", "episode_in_pair", "frame_index"]
+        frames[name] = df.sort_values(keys)[[*keys, "action", "next.reward"]].reset_index(drop=True)
+    pd.testing.assert_frame_equal(frames["vector_agent"], frames["vector_twin_agent"])

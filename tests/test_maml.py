@@ -88,11 +88,12 @@ def test_the_agent_adapts_after_each_episode_and_forgets_on_reset_task(tmp_path:
 
     task = load_suite("narrow-v1").tasks[0]
     agent = MAMLAgent(train(tiny(hidden=32), tmp_path / "run"), seed=3)
-    theta_0 = [p.clone() for p in agent._params]
+    lane = agent.vector_agent  # the one-lane agent plays lane 0 of a MAMLVectorAgent: its parameters per lane
+    theta_0 = [p.clone() for p in lane.params]
     first = [play_episode(agent, task, TWO_WORKERS[0], k) for k in range(3)]
-    assert all(not torch.equal(a, b) for a, b in zip(theta_0, agent._params))  # adapted by its own episodes
+    assert all(not torch.equal(a, b) for a, b in zip(theta_0, lane.params))  # adapted by its own episodes
     agent.reset_task()
-    assert all(torch.equal(a, b) for a, b in zip(theta_0, agent._params))
+    assert all(torch.equal(a, b) for a, b in zip(theta_0, lane.params))
     assert [play_episode(agent, task, TWO_WORKERS[0], k) for k in range(3)] == first  # same seed, same pair
 
 

@@ -128,8 +128,10 @@ def test_the_agent_samples_z_per_episode_from_its_own_context_and_forgets_on_res
     agent = PEARLAgent(train(tiny(), tmp_path / "run"), seed=3)
     env = MewaEnv(task=task)
 
+    lane = agent.vector_agent  # the one-lane agent plays lane 0 of a PEARLVectorAgent
+
     def pair() -> list[torch.Tensor]:
-        zs = [agent.z.clone()]
+        zs = [lane.z[0].clone()]
         for k in range(3):
             obs, _ = env.reset(options={"task": task, "worker": tuple(TWO_WORKERS[1]), "luck_key": k})
             done = False
@@ -139,13 +141,14 @@ def test_the_agent_samples_z_per_episode_from_its_own_context_and_forgets_on_res
                 agent.observe(Transition(obs, action, reward, following, terminated, truncated))
                 obs, done = following, terminated or truncated
             agent.end_episode()
-            zs.append(agent.z.clone())
+            zs.append(lane.z[0].clone())
         return zs
 
+    agent.reset_task()  # as the runner does before a pair's first episode
     first = pair()
-    assert len(agent.transitions) > 0 and not torch.equal(first[0], first[1])
+    assert lane.steps.count[0] > 0 and not torch.equal(first[0], first[1])
     agent.reset_task()
-    assert agent.transitions == [] and torch.equal(agent.z, first[0])  # the prior draw of the same seed
+    assert lane.steps.count[0] == 0 and torch.equal(lane.z[0], first[0])  # the prior draw of the same seed
     assert all(torch.equal(a, b) for a, b in zip(pair(), first))
 
 

@@ -128,18 +128,18 @@ def test_train_one_seed_per_ray_task_gives_the_local_runs(tmp_path: Path) -> Non
                                           "--worker", "0,1,1,1", "--out", str(tmp_path / where), *extra])
         assert result.exit_code == 0, result.output
     for seed in (1, 2):
-        on_ray = torch.load(tmp_path / "ray" / f"seed{seed}" / "checkpoint.pt", weights_only=False)
-        local = torch.load(tmp_path / "local" / f"seed{seed}" / "checkpoint.pt", weights_only=False)
+        on_ray = torch.load(tmp_path / "ray" / f"rl2-narrow-v1-seed{seed}" / "checkpoint.pt", weights_only=False)
+        local = torch.load(tmp_path / "local" / f"rl2-narrow-v1-seed{seed}" / "checkpoint.pt", weights_only=False)
         assert all(torch.equal(on_ray["model"][k], local["model"][k]) for k in local["model"])
 
         def metrics(where: str) -> list[dict[str, str]]:
-            with (tmp_path / where / f"seed{seed}" / "metrics.csv").open() as f:
+            with (tmp_path / where / f"rl2-narrow-v1-seed{seed}" / "metrics.csv").open() as f:
                 return [{k: v for k, v in row.items() if k != "seconds"} for row in csv.DictReader(f)]
 
         assert metrics("ray") == metrics("local")
     assert not all(torch.equal(a, b) for a, b in zip(
-        torch.load(tmp_path / "local" / "seed1" / "checkpoint.pt", weights_only=False)["model"].values(),
-        torch.load(tmp_path / "local" / "seed2" / "checkpoint.pt", weights_only=False)["model"].values()))
+        torch.load(tmp_path / "local" / "rl2-narrow-v1-seed1" / "checkpoint.pt", weights_only=False)["model"].values(),
+        torch.load(tmp_path / "local" / "rl2-narrow-v1-seed2" / "checkpoint.pt", weights_only=False)["model"].values()))
 
 
 def test_a_vector_agent_on_ray_gives_the_one_lane_local_results(tmp_path: Path) -> None:

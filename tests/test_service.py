@@ -90,7 +90,7 @@ def test_api_describes_itself(server) -> None:
                  "/api/submissions/results", "/api/submissions/agent", "/api/submissions/{submission_id}"):
         assert path in paths, path
     health = get(server, "/api/health").json()
-    assert health["schema"] == "0003" and health["database"] == server.backend
+    assert health["schema"] == "0004" and health["database"] == server.backend
     assert health["uploads_ranked"] is False and "sandbox" in health["sandbox_limits"]
     docs = get(server, "/docs")  # offline: no CDN, no script, every operation listed
     assert docs.status_code == 200 and "<script" not in docs.text and "cdn" not in docs.text.lower()
@@ -154,7 +154,8 @@ def test_results_upload_is_rescored_byte_for_byte(server, token, evaluated) -> N
     assert json_text(status["scores"]["narrow-v1"]) == json_text(results["scores"])  # the same bytes
     board = get(server, "/api/leaderboards/narrow-v1").json()
     row = next(r for r in board["rows"] if r["submission_id"] == answer.json()["id"])
-    assert row["mean"] == results["scores"]["mean"]["mean"] and row["rank"] >= 1 and row["kind"] == "agent"
+    assert row["mean"] == results["scores"]["mean"]["mean"] and row["kind"] == "agent"
+    assert row["source"] == "self-reported" and row["rank"] is None  # uploads are unranked unless --rank-uploads
     assert row["curve"] == [p["mean"] for p in results["scores"]["curve"]]
     assert {r["name"] for r in board["rows"] if r["kind"] == "reference"} >= {"best fixed policy", "random"}
     page = get(server, "/leaderboards/narrow-v1")  # the HTML page (service.web) shows the same row
@@ -459,3 +460,86 @@ def test_the_command_line_does_not_load_the_web_stack() -> None:
              "print(sorted({m.split('.')[0] for m in sys.modules} & heavy))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120)
     assert out.stdout.strip() == "[]"
+
+
+def test_every_command_that_opens_a_data_dir_makes_it_private(tmp_path) -> None:
+    """`serve token create` (the README's first step) on a new or a loose data dir leaves it 0700, its database 0600."""
+    loose = tmp_path / "loose"
+    loose.mkdir(mode=0o755)
+    os.chmod(loose, 0o755)
+    for data in (tmp_path / "new" / "data", loose):
+        made = subprocess.run([*CLI, "serve", "token", "create", "alice", "--data-dir", str(data)],
+                              capture_output=True, text=True, timeout=120)
+        assert made.returncode == 0, made.stderr
+        assert data.stat().st_mode & 0o777 == 0o700, data
+        assert (data / "service.db").stat().st_mode & 0o777 == 0o600, data
+
+
+def test_an_unexpected_failure_is_a_json_500_with_the_security_headers(tmp_path, caplog) -> None:
+    """A route that raises: the answer is the JSON 500 (no internals), with every security header, and the
+    server's log keeps the traceback."""
+    from starlette.testclient import TestClient
+
+    from mewa_bench.service.app import create_app
+    from mewa_bench.service.settings import Settings
+
+    app = create_app(Settings(data_dir=tmp_path / "data", hidden=False))
+
+    @app.get("/api/fail-for-the-test")
+    def fail() -> None:
+        raise RuntimeError("an internal detail the client must not see")
+
+    with TestClient(app, raise_server_exceptions=False) as client:
+        answer = client.get("/api/fail-for-the-test")
+    assert answer.status_code == 500 and answer.json() == {"error": "internal",
+                                                           "detail": "the server failed to answer this request"}
+    assert {k: answer.headers.get(k) for k in SECURITY} == SECURITY
+    assert "an internal detail" not in answer.text
+    assert "an internal detail the client must not see" in caplog.text
+
+
+def test_a_submitters_runs_of_one_algorithm_share_a_row_of_the_algorithms_table(server, token, runs, tmp_path) -> None:
+    """Three uploads under the algorithm name "mine" (one through `submit`, named by the run.json beside it) make one
+    row over three runs, whose mean is the runs' mean; another submitter's "mine" is a row of its own."""
+    folder = tmp_path / "mine-seed1"
+    folder.mkdir()
+    (folder / "run.json").write_text(json.dumps({"algorithm": "mine", "seed": 1, "suite": "narrow-v1", "steps": 1}))
+    path = folder / "results-narrow-v1.json"
+    path.write_bytes(results_text(runs("mine-1")).encode())
+    submitted = subprocess.run([*CLI, "submit", str(path), "--server", server.url, "--token", token, "--wait",
+                                "--timeout", "120"], capture_output=True, text=True, timeout=300,
+                               env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert submitted.returncode == 0 and "done" in submitted.stdout, submitted.stdout + submitted.stderr
+    headers = {"Authorization": f"Bearer {token}"}
+    for label in ("mine-2", "mine-3"):
+        answer = httpx.post(server.url + "/api/submissions/results", data={"algorithm": "mine"}, headers=headers,
+                            files={"file": ("r.json", results_text(runs(label)).encode(), "application/json")},
+                            timeout=120)
+        assert answer.status_code == 202, answer.text
+        assert wait_status(server, answer.json()["id"])["status"] == "done"
+    stranger = server.token("mallory-of-the-algorithms")
+    answer = httpx.post(server.url + "/api/submissions/results", data={"algorithm": "mine"},
+                        headers={"Authorization": f"Bearer {stranger}"},
+                        files={"file": ("r.json", results_text(runs("not-mine")).encode(), "application/json")},
+                        timeout=120)
+    assert answer.status_code == 202 and wait_status(server, answer.json()["id"])["status"] == "done"
+    bad = httpx.post(server.url + "/api/submissions/results", data={"algorithm": "no spaces <b>"}, headers=headers,
+                     files={"file": ("r.json", results_text(runs("bad-name")).encode(), "application/json")},
+                     timeout=120)
+    assert bad.status_code == 422 and bad.json()["error"] == "invalid_algorithm", bad.text
+
+    board = get(server, "/api/leaderboards/narrow-v1").json()
+    rows = {r["algorithm"]: r for r in board["algorithms"]}
+    mine = [r for name, r in rows.items() if name.startswith("mine")]
+    assert len(mine) == 2, sorted(rows)  # ours and the stranger's, never merged
+    ours = next(r for r in mine if r["runs"] == 3)
+    other = next(r for r in mine if r["runs"] == 1)
+    assert ours["source"] == "self-reported" and ours["rank"] is None  # uploads are unranked here
+    assert "[submitter" in ours["algorithm"] and "[submitter" in other["algorithm"]
+    expected = sum(runs(label)["scores"]["mean"]["mean"] for label in ("mine-1", "mine-2", "mine-3")) / 3
+    assert abs(ours["mean"]["mean"] - expected) < 1e-9
+    assert ours["mean"]["low"] < ours["mean"]["mean"] < ours["mean"]["high"]
+    assert other["mean"]["low"] is None and "no interval over training runs" in other["note"]
+    page = get(server, "/leaderboards/narrow-v1").text
+    assert 'id="algorithms"' in page and 'data-runs="3"' in page and "<h2>Checkpoints</h2>" in page
+    assert page.index('id="algorithms"') < page.index('id="ranking"')

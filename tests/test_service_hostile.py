@@ -156,7 +156,10 @@ def test_the_hostile_battery_ends_contained_with_reasons(server, hidden_dir, tmp
 
     assert scratch_left(server) == []
     assert get(server, "/api/health").json()["jobs"].get("running", 0) == 0
-    assert "CHATTY-FORGED-LINE" not in server.log.read_text(errors="replace")  # the server's log has none of it
+    server_log = server.log.read_text(errors="replace")
+    assert "CHATTY-FORGED-LINE" not in server_log  # the server's log has none of the agent's output,
+    assert "the agent was told to fail on" not in server_log  # nor the text of its exceptions
+    assert "rejected (AgentRejected; the reason is kept with the job)" in server_log
     assert server.process is not None and server.process.poll() is None
 
 

@@ -224,7 +224,11 @@ def test_agent_uploads_are_checked_and_hostile_agents_fail_with_reasons(tmp_path
             "sandbox rule broken (filesystem) on the hidden suite (details of runs on a hidden suite are kept for "
             "the server's admin)", "stopped: the submission's job on narrow-v1 was rejected first"), hidden_read
         leaked = every_job_final(server, leaky.json()["id"])
-        assert leaked["status"] == "rejected" and "LEAK" in leaked["reason"]  # on the public suite: the whole text
+        assert leaked["status"] == "rejected", leaked
+        if leaked["jobs"][0]["error"].startswith("stopped: "):  # the hidden job failed first and ended the public one
+            assert "LEAK" not in leaked["reason"] and "on the hidden suite" in leaked["reason"], leaked["reason"]
+        else:
+            assert "LEAK" in leaked["reason"]  # on the public suite: the whole text
         text = json.dumps(leaked["jobs"][1])
         assert "LEAK" not in text and "pair" not in text
         assert "the agent failed (exception) on the hidden suite" in text or \

@@ -508,3 +508,16 @@ def test_groups_left_by_a_killed_worker_are_swept(sandbox):
     finally:
         ours.remove()
         left.remove()
+
+
+def test_an_attempt_that_appends_after_a_restart_keeps_the_output_log_within_its_cap(tmp_path):
+    """Two attempts of a job writing one output log: the cap holds for the file, and it is cut once."""
+    from mewa_bench.service.agent_output import TRUNCATED, OutputCapture
+
+    log = tmp_path / "output-1.log"
+    for _ in range(2):
+        capture = OutputCapture(log, limit=1000)
+        os.write(capture.fd, b"x" * 700)
+        capture.close()
+    data = log.read_bytes()
+    assert data == b"x" * 1000 + TRUNCATED % 1000

@@ -26,8 +26,8 @@ class Agent:
     def act(self, observation):
         x = torch.as_tensor(np.concatenate([observation[None] / 8.0, self.previous], axis=1))
         self.h = self.gru(x, self.h)
-        p = torch.softmax(self.head(self.h), dim=1).double().numpy()[0]
-        return int(self.rng.choice(len(p), p=p / p.sum()))
+        cdf = torch.softmax(self.head(self.h), dim=1).double().cumsum(dim=1).numpy()[0]
+        return int((cdf[:-1] < self.rng.random() * cdf[-1]).sum())
 
     def observe(self, transition):
         self.previous[:] = 0.0

@@ -101,6 +101,8 @@ def serve_worker(data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir
                                                                      "(default 21600)."),
                  memory_mb: float = typer.Option(None, help="Memory of an agent's process and of its sandbox as a "
                                                             "whole, in MB (default 4096)."),
+                 scratch_mb: float = typer.Option(None, help="An agent job's scratch directory on disk, in MB "
+                                                             "(default 1024)."),
                  max_jobs: int = typer.Option(None, min=1, help="Stop after this many jobs (default: run until stopped).")
                  ) -> None:
     """Run one evaluation worker against a server's database and data dir (for more workers, or other machines)."""
@@ -110,9 +112,14 @@ def serve_worker(data_dir: Path = typer.Option(Path("mewa-service"), "--data-dir
     from mewa_bench.service.worker import run_worker
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s[%(process)d] %(levelname)s %(message)s")
+    from mewa_bench.service.app import make_data_dir
+    from mewa_bench.service.settings import MiB
+
     settings = _settings(data_dir, db, lease_seconds=lease_seconds, job_seconds=job_seconds,
-                         memory_bytes=None if memory_mb is None else int(memory_mb * (1 << 20)))
+                         memory_bytes=None if memory_mb is None else int(memory_mb * MiB),
+                         scratch_bytes=None if scratch_mb is None else int(scratch_mb * MiB))
     try:
+        make_data_dir(settings)
         engine = make_engine(settings.database_url)
         migrate(engine)
         engine.dispose()
@@ -125,8 +132,10 @@ def _with_session(data_dir: Path, db: str | None, action):
     """Run `action(session)` in one transaction on the migrated database."""
     from mewa_bench.service.db import make_engine, migrate, session_factory, transaction
 
+    from mewa_bench.service.app import make_data_dir
+
     settings = _settings(data_dir, db)
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    make_data_dir(settings)
     engine = make_engine(settings.database_url)
     try:
         migrate(engine)
@@ -225,6 +234,9 @@ def submit(file: Path = typer.Argument(..., metavar="FILE", exists=True, dir_oka
            checkpoint: Path = typer.Option(None, help="Agents: a .tar(.gz), or a file or folder to pack; unpacked "
                                                       "beside the agent file on the server."),
            agent_arg: list[str] = typer.Option([], "--agent-arg", help="Agents: key=value passed to make_agent (repeatable)."),
+           algorithm: str = typer.Option(None, help="The algorithm this run is a training run of: your runs under one "
+                                                    "name share a row of the boards' algorithms table (default: "
+                                                    "run.json's beside the file, else a one-run algorithm)."),
            wait: bool = typer.Option(False, "--wait", metavar="", help="Wait until it is scored, rejected or failed."),
            timeout: float = typer.Option(None, help="With --wait: give up waiting after this many seconds.")) -> None:
     """Submit a results file (re-scored by the server) or an agent (evaluated in its sandbox) to a server."""
@@ -237,8 +249,8 @@ def submit(file: Path = typer.Argument(..., metavar="FILE", exists=True, dir_oka
             _fail(ValueError(f"--agent-arg {item!r}: expected key=value"))
         args[key] = value
     try:
-        answer = client.submit(server, file, token, suite, name, checkpoint, args)
-    except (client.ServiceError, OSError) as e:
+        answer = client.submit(server, file, token, suite, name, checkpoint, args, algorithm)
+    except (client.ServiceError, OSError, ValueError) as e:  # ValueError: a run.json that cannot be read
         _fail(e)
     console.print(f"submission [bold]{answer['id']}[/bold] accepted ({answer['status']})")
     if wait:

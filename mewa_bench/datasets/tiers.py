@@ -3,8 +3,9 @@ expected return of each episode's behaviour where one is defined.
 
 - `random`: uniform over the 4 palette actions (SPEC section 4's random baseline).
 - `random-task-specific`: knows the game, ignores the worker (SPEC section 4).
-- `expert`: a shipped adaptive reference agent (default bayes-adaptive; bayes-explorer with
-  `expert_agent`) playing the protocol's 10 episodes per worker, told neither task nor worker.
+- `expert`: a shipped adaptive reference agent (default bayes-explorer, the stronger one: it wins
+  most of the v2 suites' gaps; bayes-adaptive with `expert_agent`) playing the protocol's 10 episodes per worker, told
+  neither task nor worker.
   Its behaviour changes with what it has seen, so no exact expected return is stored.
 - `learning-histories`: posterior sampling over the t-optimal family (`learning_histories`), one
   history of `history_episodes` episodes per worker, in learning order.
@@ -94,7 +95,7 @@ def file_sha256(path: Path) -> str:
 
 
 def play_tier(tier: str, suite: str, tasks: tuple[Task, ...], task_index: int, workers: np.ndarray,
-              keys: np.ndarray, rng: np.random.Generator, agent_seeds: np.ndarray, expert_agent: str = "bayes-adaptive",
+              keys: np.ndarray, rng: np.random.Generator, agent_seeds: np.ndarray, expert_agent: str = "bayes-explorer",
               jobs: int = 1) -> TierRun:
     """Play a tier on meta-episodes of task `tasks[task_index]`: one worker per row of `workers` [M, 4], the
     luck keys of its episodes in the row of `keys` [M, H]."""

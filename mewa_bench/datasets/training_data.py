@@ -57,7 +57,7 @@ class TrainingSpec:
     seed: int = 0
     meta_batch: int = 64  # meta-episodes (workers) per round
     history_episodes: int = 50  # episodes per worker in the learning-histories tier
-    expert_agent: str = "bayes-adaptive"
+    expert_agent: str = "bayes-explorer"  # the stronger adaptive reference (most of the v2 suites' gaps)
 
     @property
     def dataset_id(self) -> str:

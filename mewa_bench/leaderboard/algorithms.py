@@ -43,11 +43,16 @@ def compare_entries(suite: Suite, entries: Sequence[Entry]) -> AlgorithmComparis
 def algorithm_rows(suite: Suite, entries: Sequence[Entry],
                    comparison: AlgorithmComparison) -> tuple[AlgorithmRow, ...]:
     """The table's rows, best mean first; privileged algorithms unranked; equal means share a rank."""
+    return rows_of(suite, comparison, privileged={e.algorithm or e.agent for e in entries if e.privileged})
+
+
+def rows_of(suite: Suite, comparison: AlgorithmComparison, privileged: set[str],
+            unranked: frozenset[str] = frozenset()) -> tuple[AlgorithmRow, ...]:
+    """The table's rows, best mean first; `privileged` and `unranked` algorithms get no rank; equal means share one."""
     from mewa_bench.leaderboard.board import competition_ranks
 
-    privileged = {e.algorithm or e.agent for e in entries if e.privileged}
     best_fixed = float(suite.summary["score"]["best_fixed"])
-    ranked = [s for s in comparison.algorithms if s.algorithm not in privileged]
+    ranked = [s for s in comparison.algorithms if s.algorithm not in privileged | unranked]
     ranks = dict(zip((s.algorithm for s in ranked), competition_ranks([s.mean.mean for s in ranked])))
     rows = []
     for s in comparison.algorithms:

@@ -124,8 +124,10 @@ def improvement_probability(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def aggregate(runs: Sequence[Run], lines: dict[str, np.ndarray], samples: int = BOOTSTRAP_SAMPLES,
-              seed: int = BOOTSTRAP_SEED) -> AlgorithmComparison:
-    """Group runs by algorithm and estimate everything; `lines` maps a reference line to its exact score per pair."""
+              seed: int = BOOTSTRAP_SEED, pairwise: bool = True) -> AlgorithmComparison:
+    """Group runs by algorithm and estimate everything; `lines` maps a reference line to its exact score per pair.
+    `pairwise=False` leaves out P(X > Y) between algorithms (quadratic in their number; a board's table has no use
+    for it)."""
     groups: dict[str, list[Run]] = {}
     for run in sorted(runs, key=lambda r: (r.algorithm, r.name)):
         groups.setdefault(run.algorithm, []).append(run)
@@ -137,7 +139,7 @@ def aggregate(runs: Sequence[Run], lines: dict[str, np.ndarray], samples: int = 
     scores = [_algorithm(a, [r.name for r in groups[a]], curves[a], idx[a], lines) for a in groups]
     scores.sort(key=lambda s: (-s.mean.mean, s.algorithm))
     improvement: dict[tuple[str, str], Estimate] = {}
-    for a in curves:
+    for a in curves if pairwise else ():
         for b in curves:
             if a != b:
                 x, y = curves[a].mean(axis=-1), curves[b].mean(axis=-1)

@@ -360,6 +360,17 @@ def pair_means(values: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return np.stack([values[pairs == p].mean(axis=0) for p in order])
 
 
+def resampled_sums(values: np.ndarray, idx: np.ndarray, chunk: int = 64) -> np.ndarray:
+    """sum(values[idx[b]]) for every resample b: [B, C] from values [U, C] and indices [B, n].
+
+    Summed one unit after another by numpy, not as a matrix product: BLAS splits a product by thread count
+    and CPU kernel, which changes the last bits of the intervals (and the bytes of results and boards)."""
+    out = np.empty((len(idx), values.shape[1]))
+    for start in range(0, len(idx), chunk):
+        out[start:start + chunk] = values[idx[start:start + chunk]].sum(axis=1)
+    return out
+
+
 def stratified_estimates(columns: dict[str, np.ndarray], pairs: np.ndarray, samples: int = BOOTSTRAP_SAMPLES,
                          seed: int = BOOTSTRAP_SEED) -> dict[str, Estimate]:
     """The mean of each per-unit column with its interval from a bootstrap of seeds within pairs."""
@@ -367,9 +378,7 @@ def stratified_estimates(columns: dict[str, np.ndarray], pairs: np.ndarray, samp
     values = np.column_stack([columns[n] for n in names])
     n_units = len(pairs)
     idx = stratified_resamples(pairs, samples, seed)
-    weights = np.zeros((samples, n_units))
-    np.add.at(weights, (np.arange(samples)[:, None], idx), 1.0)
-    boot = weights @ values / n_units
+    boot = resampled_sums(values, idx) / n_units
     n, df = _strata_counts(pairs)
     return {name: bootstrap_interval(float(values[:, j].mean()), boot[:, j], n, df,
                                      (0.0, 1.0) if name.startswith("poi_") else (-np.inf, np.inf))
@@ -381,11 +390,9 @@ def stratified_iqm(unit_means: np.ndarray, pairs: np.ndarray, samples: int = BOO
     """rliable's IQM over the pair means of `unit_means` (or the given pair `cells`, the same up to rounding),
     with its interval from the same bootstrap."""
     order = np.unique(pairs)
-    onehot = (pairs[:, None] == order[None, :]).astype(np.float64)  # [U, P]
-    idx = stratified_resamples(pairs, samples, seed)
-    weights = np.zeros((samples, len(pairs)))
-    np.add.at(weights, (np.arange(samples)[:, None], idx), 1.0)
-    boot_means = (weights * unit_means[None, :]) @ onehot / onehot.sum(axis=0)[None, :]
+    idx = stratified_resamples(pairs, samples, seed)  # each pair's units resampled in its own columns
+    boot_means = np.column_stack([resampled_sums(unit_means[:, None], idx[:, pairs == p])[:, 0] / np.sum(pairs == p)
+                                  for p in order])  # [samples, P]
     n, df = _strata_counts(pairs)
     point = interquartile_mean(pair_means(unit_means, pairs) if cells is None else cells)
     return bootstrap_interval(float(point), interquartile_mean(boot_means), n, df)

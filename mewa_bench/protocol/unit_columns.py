@@ -230,7 +230,8 @@ def _all_of(dtype: str, values: list[Any]) -> bool:
 
 def _covers(predictors: Predictors, task: np.ndarray, pair: np.ndarray) -> bool:
     """Every unit's task and pair has its predictor."""
-    return bool(((task >= 0) & (task < len(predictors.low))).all() and ((pair >= 0) & (pair < len(predictors.max_expected))).all())
+    tasks_known = ((task >= 0) & (task < len(predictors.low))).all()
+    return bool(tasks_known and ((pair >= 0) & (pair < len(predictors.max_expected))).all())
 
 
 def _predictions(predictors: Predictors, arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -255,8 +256,8 @@ def _predictors(table: Any, where: str) -> Predictors | None:
                           f"got {_shape_of(table)}")
     for key in _PREDICTORS:
         values = table[key]
-        if (not isinstance(values, list) or not 1 <= len(values) <= MAX_UNITS
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)):
+        numbers = isinstance(values, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        if not numbers or not 1 <= len(values) <= MAX_UNITS or not all(math.isfinite(v) for v in values):
             raise ColumnError(f"{where}: units.predictors.{key} must be a non-empty list of finite numbers")
     if len(table["low"]) != len(table["span"]):
         raise ColumnError(f"{where}: units.predictors: low has {len(table['low'])} tasks, span {len(table['span'])}")

@@ -19,11 +19,12 @@ class OutputCapture:
 
     def __init__(self, log: Path, limit: int) -> None:
         self.log, self.limit = log, limit
-        self.written = 0
-        self.dropped = 0
-        read_fd, self.fd = os.pipe()
         log.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(log, "ab")
+        self.written = self._file.tell()  # an attempt that goes on after a restart appends: the cap is the file's
+        self.dropped = 0
+        self._marked = self.written >= limit  # the file was cut at its limit already
+        read_fd, self.fd = os.pipe()
         os.chmod(log, 0o600)
         self._thread = threading.Thread(target=self._drain, args=(read_fd,), name="agent-output", daemon=True)
         self._thread.start()
@@ -38,9 +39,10 @@ class OutputCapture:
                     self._file.flush()
                     self.written += min(room, len(chunk))
                 if len(chunk) > room:
-                    if not self.dropped:
+                    if not self._marked:
                         self._file.write(TRUNCATED % self.limit)
                         self._file.flush()
+                        self._marked = True
                     self.dropped += len(chunk) - max(room, 0)
         finally:
             os.close(read_fd)

@@ -41,7 +41,7 @@ def create_app(settings: Settings) -> Any:
     require("sqlalchemy", "service", "mewa-bench serve")
     from fastapi import FastAPI, Request
     from fastapi.exceptions import RequestValidationError
-    from fastapi.responses import HTMLResponse, JSONResponse
+    from fastapi.responses import HTMLResponse, JSONResponse, Response
     from starlette.exceptions import HTTPException
 
     from mewa_bench import __version__
@@ -49,7 +49,7 @@ def create_app(settings: Settings) -> Any:
     from mewa_bench.service.db import make_engine, migrate, schema_revision, session_factory
     from mewa_bench.service.errors import ApiError
     from mewa_bench.service.jobs import queue_counts
-    from mewa_bench.service.guards import SecurityHeaders, UploadGate
+    from mewa_bench.service.guards import INTERNAL_ERROR, SecurityHeaders, UploadGate
     from mewa_bench.service.limits import BodySizeLimit, RateLimiter
     from mewa_bench.service.web.docs_page import docs_html
     from mewa_bench.service.routes import datasets, leaderboards, submissions, suites
@@ -85,13 +85,12 @@ def create_app(settings: Settings) -> Any:
                             headers=getattr(error, "headers", None))
 
     @app.exception_handler(Exception)
-    async def unexpected(request: Request, error: Exception) -> JSONResponse:
+    async def unexpected(request: Request, error: Exception) -> Response:
         """Anything else: a JSON 500 that names no internals (the server's log has the traceback)."""
         import logging
 
         logging.getLogger("mewa_bench.service").exception("%s %s failed", request.method, request.url.path)
-        return JSONResponse({"error": "internal", "detail": "the server failed to answer this request"},
-                            status_code=500)
+        return Response(INTERNAL_ERROR, status_code=500, media_type="application/json")
 
     @app.get("/docs", include_in_schema=False)
     def docs() -> HTMLResponse:
@@ -119,14 +118,14 @@ def create_app(settings: Settings) -> Any:
 
 
 def make_data_dir(settings: Settings) -> None:
-    """The data dir (0700 when made here) and the SQLite database file (0600 when made here)."""
+    """The data dir at 0700 and the SQLite database file at 0600, made so or tightened to it when they exist
+    (every command that opens the data dir calls this, so none leaves it readable by other users)."""
     import os
 
-    if not settings.data_dir.exists():
-        settings.data_dir.mkdir(parents=True, mode=0o700)
-        os.chmod(settings.data_dir, 0o700)  # whatever the umask
+    settings.data_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+    os.chmod(settings.data_dir, 0o700)  # whatever the umask, and an existing dir too
     if settings.db_url is None:
         database = settings.data_dir / "service.db"
         if not database.exists():
             os.close(os.open(database, os.O_CREAT | os.O_WRONLY, 0o600))
-            os.chmod(database, 0o600)
+        os.chmod(database, 0o600)

@@ -6,6 +6,8 @@ each with its `source`: server-evaluated (the server ran the agent file in its s
 self-reported (a results file the submitter ran: re-scored from its episodes, but played where the
 server could not see; unranked unless the server's `rank_uploads` is set) or reference,
 with the suite's exact reference lines and each agent's adaptation curve s_1..s_10 with its CIs.
+Above the rows, the algorithms table (`algorithm_table`): the runs a submitter sent under one
+algorithm name, with statistics over training runs as the static boards have them.
 A hidden board shows scores only: never the hidden suite, its pairs, its size or the runs' units.
 Its reference lines (the fixed policies' and the optimum's means over the whole suite) are shown:
 one number each, which the agents' rows are read against, and from which no pair can be learned.
@@ -18,6 +20,8 @@ import json
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
 from mewa_bench.leaderboard.board import AGENT, PRIVILEGED, REFERENCE, Row, competition_ranks, reference_rows
@@ -72,15 +76,19 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
     """A board as JSON (None: no such board)."""
     from sqlalchemy import select
 
-    from mewa_bench.service.models import BoardEntry
+    from mewa_bench.service.models import BoardEntry, Submission
 
     boards = dict(board_names(settings))
     if name not in boards:
         return None
     hidden = boards[name]
     suite = _hidden_suite(settings, name) if hidden else _public_suite(name)
-    entries = session.scalars(select(BoardEntry).where(BoardEntry.board == name)
-                              .order_by(BoardEntry.mean.desc(), BoardEntry.agent_name, BoardEntry.id)).all()
+    found = session.execute(select(BoardEntry, Submission.token_id).join(Submission,
+                                                                         Submission.id == BoardEntry.submission_id)
+                            .where(BoardEntry.board == name)
+                            .order_by(BoardEntry.mean.desc(), BoardEntry.agent_name, BoardEntry.id)).all()
+    entries = [e for e, _ in found]
+    submitters = {e.id: token_id for e, token_id in found}
     rows: list[dict[str, Any]] = []
 
     def ranked(e: BoardEntry) -> bool:
@@ -101,10 +109,63 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
         rows.append({**dataclasses.asdict(r), "source": REFERENCE_SOURCE, "submission_id": None, "curve": [r.mean] * EPISODES_PER_PAIR,
                      "curve_low": None, "curve_high": None})  # fixed policies: a flat curve
     rows.sort(key=lambda r: (-r["mean"], KIND_ORDER[r["kind"]], r["name"]))
+    algorithms = [] if suite is None else algorithm_table(suite, entries, submitters, settings.rank_uploads)
     return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
             "suite": None if hidden or suite is None else {"name": suite.name, "sha256": suite.sha256},
             "seeds": len(settings.seeds_for(name)), "entries": len(entries), "uploads_ranked": settings.rank_uploads,
-            "rows": rows}
+            "algorithms": algorithms, "rows": rows}
+
+
+_TABLES: dict[tuple, list[dict[str, Any]]] = {}  # board entries never change once written: tables by their ids
+_TABLES_KEPT = 32
+
+
+def algorithm_table(suite: Suite, entries: list[Any], submitters: dict[int, int],
+                    rank_uploads: bool) -> list[dict[str, Any]]:
+    """The algorithms table: a board's runs grouped by (submitter, algorithm name), statistics over the runs.
+
+    A submitter's runs under one algorithm name share a row (another submitter's runs under the same name
+    never join it: the row is then named with its submitter's number); a self-reported run never joins a
+    server-evaluated one. A run without per-pair curves (stored before the service kept them) is left out."""
+    key = (suite.sha256, tuple(sorted(e.id for e in entries)), rank_uploads)
+    if key not in _TABLES:
+        if len(_TABLES) >= _TABLES_KEPT:
+            _TABLES.pop(next(iter(_TABLES)))
+        _TABLES[key] = _algorithm_table(suite, entries, submitters, rank_uploads)
+    return _TABLES[key]
+
+
+def _algorithm_table(suite: Suite, entries: list[Any], submitters: dict[int, int],
+                     rank_uploads: bool) -> list[dict[str, Any]]:
+    """algorithm_table, computed."""
+    from mewa_bench.leaderboard.algorithms import rows_of
+    from mewa_bench.protocol.aggregate import Run, aggregate
+    from mewa_bench.protocol.scoring import reference_line_cells
+
+    kept = [e for e in entries if e.pair_curves is not None]
+    owners: dict[str, set[int]] = {}
+    for e in kept:
+        owners.setdefault(e.algorithm or e.agent_name, set()).add(submitters[e.id])
+    runs, privileged, unranked, sources = [], set(), set(), {}
+    for e in kept:
+        name = e.algorithm or e.agent_name
+        if len(owners[name]) > 1:
+            name = f"{name} [submitter {submitters[e.id]}]"
+        if e.source == SELF_REPORTED:
+            name = f"{name} (self-reported)"
+            if not rank_uploads:
+                unranked.add(name)
+        if e.privileged:
+            privileged.add(name)
+        sources[name] = e.source
+        runs.append(Run(name=f"{e.agent_name} #{e.id}", algorithm=name, curves=np.array(json.loads(e.pair_curves))))
+    if not runs:
+        return []
+    comparison = aggregate(runs, reference_line_cells(suite), pairwise=False)
+    table = []
+    for row in rows_of(suite, comparison, privileged, frozenset(unranked)):
+        table.append({**dataclasses.asdict(row), "source": sources[row.algorithm]})
+    return table
 
 
 def boards_index(session: Session, settings: Settings) -> list[dict[str, Any]]:

@@ -93,25 +93,31 @@ def checkpoint_archive(path: Path) -> tuple[str, bytes]:
 
 
 def submit(server: str, file: Path, token: str | None, suite: str = "narrow-v1", name: str | None = None,
-           checkpoint: Path | None = None, agent_args: dict[str, str] | None = None) -> dict[str, Any]:
-    """Upload a results file (.json) or an agent (.py, with an optional checkpoint); returns the server's answer."""
+           checkpoint: Path | None = None, agent_args: dict[str, str] | None = None,
+           algorithm: str | None = None) -> dict[str, Any]:
+    """Upload a results file (.json) or an agent (.py, with an optional checkpoint); returns the server's answer.
+    `algorithm`: what the run is a training run of (default: the algorithm of a run.json beside the file, if any)."""
     from mewa_bench.protocol.config import agent_name
+    from mewa_bench.protocol.run_info import RUN_FILE, read_run_info
 
     file = Path(file)
+    if algorithm is None and (file.parent / RUN_FILE).is_file():
+        algorithm = read_run_info(file.parent).algorithm
+    form: dict[str, Any] = {} if algorithm is None else {"algorithm": algorithm}
     token = token_or_env(token)
     if token is None:
         raise ServiceError(f"an API token is needed to submit: --token TOKEN or ${TOKEN_ENV}")
     headers = {"Authorization": f"Bearer {token}"}
     if file.suffix == ".json":
         files = {"file": (file.name, file.read_bytes(), "application/json")}
-        return _request("POST", _url(server, "/api/submissions/results"), files=files, headers=headers)
+        return _request("POST", _url(server, "/api/submissions/results"), files=files, data=form, headers=headers)
     if file.suffix != ".py":
         raise ServiceError(f"{file}: submit a results file (.json) or an agent file (.py)")
     files: list[tuple[str, tuple[str, bytes, str]]] = [("agent", (file.name, file.read_bytes(), "text/x-python"))]
     if checkpoint is not None:
         archive_name, data = checkpoint_archive(checkpoint)
         files.append(("checkpoint", (archive_name, data, "application/gzip")))
-    data: dict[str, Any] = {"suite": suite, "name": name or agent_name(file)}
+    data: dict[str, Any] = {"suite": suite, "name": name or agent_name(file), **form}
     if agent_args:
         data["agent_arg"] = [f"{k}={v}" for k, v in agent_args.items()]
     return _request("POST", _url(server, "/api/submissions/agent"), files=files, data=data, headers=headers)

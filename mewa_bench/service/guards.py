@@ -20,6 +20,7 @@ SECURITY_HEADERS = (
     (b"x-content-type-options", b"nosniff"),
     (b"referrer-policy", b"no-referrer"),
 )
+INTERNAL_ERROR = json.dumps({"error": "internal", "detail": "the server failed to answer this request"}).encode()
 RETRY_SECONDS = 1
 DRAIN_LIMIT = 256 << 20  # past this many bytes of a refused body, the connection is closed instead
 
@@ -36,15 +37,27 @@ class SecurityHeaders:
             await self.app(scope, receive, send)
             return
         names = {name for name, _ in SECURITY_HEADERS}
+        started = False
 
         async def with_headers(message: dict) -> None:
             """The answer's start with the headers."""
+            nonlocal started
             if message["type"] == "http.response.start":
+                started = True
                 kept = [(k, v) for k, v in message.get("headers", []) if k.lower() not in names]
                 message = {**message, "headers": kept + list(SECURITY_HEADERS)}
             await send(message)
 
-        await self.app(scope, receive, with_headers)
+        try:
+            await self.app(scope, receive, with_headers)
+        except Exception:
+            # An unexpected error is answered by the framework's outermost layer, past this one: answer its JSON
+            # 500 here, with the headers, and let the error go on to be logged (the layer sees the answer started).
+            if not started:
+                await with_headers({"type": "http.response.start", "status": 500,
+                                    "headers": [(b"content-type", b"application/json")]})
+                await send({"type": "http.response.body", "body": INTERNAL_ERROR})
+            raise
 
 
 class UploadGate:

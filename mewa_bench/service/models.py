@@ -52,6 +52,7 @@ class Submission(Base):
     agent_sha256: Mapped[str] = mapped_column(String(64))
     file: Mapped[str] = mapped_column(String(500))  # relative to the data dir
     agent_args: Mapped[str | None] = mapped_column(Text, nullable=True)  # JSON object, for agent submissions
+    algorithm: Mapped[str | None] = mapped_column(String(100), nullable=True)  # the submitter's name for its algorithm
     created: Mapped[float] = mapped_column(Float, index=True)
 
 
@@ -97,6 +98,8 @@ class BoardEntry(Base):
     mean: Mapped[float] = mapped_column(Float)
     row: Mapped[str] = mapped_column(Text)  # JSON: the leaderboard row (`leaderboard.board.Row` fields)
     scores: Mapped[str] = mapped_column(Text)  # JSON: the scores recomputed on the server, as a results file has them
+    algorithm: Mapped[str | None] = mapped_column(String(100), nullable=True)  # None: a one-run algorithm (the agent)
+    pair_curves: Mapped[str | None] = mapped_column(Text, nullable=True)  # JSON [pairs][episodes]: the run's cells
     created: Mapped[float] = mapped_column(Float)
     source: Mapped[str] = mapped_column(String(20), default=SERVER_EVALUATED, server_default=SERVER_EVALUATED)
     run_digest: Mapped[str | None] = mapped_column(String(64), nullable=True)  # the run's episodes (one row per run)

@@ -165,32 +165,35 @@ def sandboxed_evaluate(agent_file: Path, suite: str | Path, out: Path, *, scratc
                               f"world-readable (chmod o+r), as everything the agent loads must be")
     kept_from_agent = [out, *(Path(p).absolute() for p in private)] + ([] if shipped else [suite_file])
     group = _make_group(limits)
-    output = None if output_log is None else OutputCapture(Path(output_log), limits.output_bytes)
-    launcher = sandbox_launcher(readable, scratch, limits, kept_from_agent, group=group,
-                                output=None if output is None else output.fd)
-    config = EvalConfig(agent_path=agent_file, suite=str(suite), seeds=seeds, out=out, name=name,
-                        agent_args=dict(agent_args or {}), checkpoint=None if checkpoint is None else str(checkpoint),
-                        time_limit=limits.call_seconds, memory_limit=limits.memory_bytes, resume=True, pairs=pairs,
-                        launcher=launcher, **({} if lanes is None else {"lanes": lanes}))
-    watchdog = Watchdog(functools.partial(_kill_sandbox, group, scratch), wall_seconds=limits.wall_seconds,
-                        scratch=scratch, scratch_bytes=limits.scratch_bytes, memory_bytes=_group_memory(limits),
-                        oom_kills=None if group is None else group.oom_kills, cancel=cancel)
-    units: list[tuple[int, int]] = [(0, 0)]
+    output = None
+    try:  # the group and the output pipe are released however this ends, set-up failures included
+        output = None if output_log is None else OutputCapture(Path(output_log), limits.output_bytes)
+        launcher = sandbox_launcher(readable, scratch, limits, kept_from_agent, group=group,
+                                    output=None if output is None else output.fd)
+        config = EvalConfig(agent_path=agent_file, suite=str(suite), seeds=seeds, out=out, name=name,
+                            agent_args=dict(agent_args or {}),
+                            checkpoint=None if checkpoint is None else str(checkpoint),
+                            time_limit=limits.call_seconds, memory_limit=limits.memory_bytes, resume=True,
+                            pairs=pairs, launcher=launcher, **({} if lanes is None else {"lanes": lanes}))
+        watchdog = Watchdog(functools.partial(_kill_sandbox, group, scratch), wall_seconds=limits.wall_seconds,
+                            scratch=scratch, scratch_bytes=limits.scratch_bytes, memory_bytes=_group_memory(limits),
+                            oom_kills=None if group is None else group.oom_kills, cancel=cancel)
+        units: list[tuple[int, int]] = [(0, 0)]
 
-    def watched(done: int, total: int) -> None:
-        units[0] = (done, total)
-        if watchdog.stop is not None:
-            raise _stopped(watchdog.stop, agent_file, units[0], out)
-        progress(done, total)
+        def watched(done: int, total: int) -> None:
+            units[0] = (done, total)
+            if watchdog.stop is not None:
+                raise _stopped(watchdog.stop, agent_file, units[0], out)
+            progress(done, total)
 
-    try:
-        with watchdog:
-            results, _ = evaluate(config, progress=watched)
-    except EvaluationError as e:
-        stop = watchdog.stop or watchdog.check_memory()  # an out-of-memory kill is the cause, whatever followed
-        if stop is not None:
-            raise _stopped(stop, agent_file, units[0], out) from None
-        raise _explained(e, limits, visible) from None
+        try:
+            with watchdog:
+                results, _ = evaluate(config, progress=watched)
+        except EvaluationError as e:
+            stop = watchdog.stop or watchdog.check_memory()  # an out-of-memory kill is the cause, whatever followed
+            if stop is not None:
+                raise _stopped(stop, agent_file, units[0], out) from None
+            raise _explained(e, limits, visible) from None
     finally:
         _kill_sandbox(group, scratch)
         if group is not None:

@@ -33,6 +33,7 @@ class Scored:
     row: str  # JSON of the leaderboard row
     scores: str  # canonical JSON of the recomputed scores
     run_digest: str  # the run's episodes (`uploads.results_digest`): one board row per run
+    pair_curves: str  # JSON [pairs][episodes]: the run's (run, pair) cells for the algorithms table
 
 
 def score_upload(results: dict[str, Any], seeds: tuple[int, ...], submission_id: int) -> Scored:
@@ -68,4 +69,4 @@ def _scored(results: dict[str, Any], suite: Suite, units: list[dict[str, Any]], 
     row = entry_row(entry, None, "submissions")
     return Scored(mean=scores.mean.mean, privileged=entry.privileged,
                   row=json.dumps(dataclasses.asdict(row), allow_nan=False), scores=json_text(scores.to_dict()),
-                  run_digest=results_digest(results, units))
+                  run_digest=results_digest(results, units), pair_curves=json_text(scores.pair_curves.tolist()))

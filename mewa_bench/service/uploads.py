@@ -237,6 +237,16 @@ def check_agent(source: bytes, filename: str, name: str | None, suite: str, agen
     return CheckedAgent(source, name, suite, args, agent_sha256, checkpoint_sha256, digest)
 
 
+def check_algorithm(name: str | None) -> str | None:
+    """A submission's algorithm name (agent-name rules), None when not given, or a 422."""
+    if name is None or name == "":
+        return None
+    if not AGENT_NAME_RE.match(name):
+        raise unprocessable("invalid_algorithm", f"algorithm name {name!r}: give a name of 1-64 letters, digits, "
+                                                 f"'.', '_' or '-', starting with a letter or digit")
+    return name
+
+
 def parse_agent_args(items: Iterable[str]) -> dict[str, str]:
     """`key=value` strings as a dict; a 422 for anything else."""
     args: dict[str, str] = {}

@@ -158,7 +158,7 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, o
         except (InvalidResults, AgentRejected) as e:
             with transaction(sessions) as session:
                 close(session, job.id, owner, REJECTED, str(e))
-            log.info("job %s rejected: %s", job.id, e)
+            log.info("job %s rejected (%s; the reason is kept with the job)", job.id, type(e).__name__)
             return
         except (LeaseLost, SandboxCancelled):
             log.warning("job %s: this worker no longer holds it (lease lost, or stopped with its submission)", job.id)
@@ -185,6 +185,17 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, o
 def _finish(sessions: sessionmaker[Session], job: Claimed, owner: str, scored: Scored) -> None:
     """Close a scored job with its board entry, or rejected if its run is on the board already (one row per run); the
     server's own evaluation of a run supersedes a self-reported upload of it."""
+    from sqlalchemy.exc import IntegrityError
+
+    try:
+        _finish_once(sessions, job, owner, scored)
+    except IntegrityError:  # another worker put the same run on the board between our look and our insert
+        log.info("job %s: its run reached the board from another job at the same time; looking again", job.id)
+        _finish_once(sessions, job, owner, scored)
+
+
+def _finish_once(sessions: sessionmaker[Session], job: Claimed, owner: str, scored: Scored) -> None:
+    """One try of `_finish` in one transaction."""
     from sqlalchemy import select
 
     source = SELF_REPORTED if job.kind == SCORE else SERVER_EVALUATED
@@ -205,10 +216,12 @@ def _finish(sessions: sessionmaker[Session], job: Claimed, owner: str, scored: S
             session.delete(earlier)
             session.flush()
         row = json.loads(scored.row)
+        algorithm = session.scalar(select(Submission.algorithm).where(Submission.id == job.submission_id))
         session.add(BoardEntry(submission_id=job.submission_id, job_id=job.id, board=job.board, hidden=job.hidden,
                                agent_name=row["name"], agent_sha256=row["agent_sha256"], privileged=scored.privileged,
                                mean=scored.mean, row=scored.row, scores=scored.scores, created=time.time(),
-                               run_digest=scored.run_digest, source=source))
+                               run_digest=scored.run_digest, source=source, algorithm=algorithm,
+                               pair_curves=scored.pair_curves))
     log.info("job %s done", job.id)
 
 

@@ -33,7 +33,7 @@ from mewa_bench.service.limits import DAY, quota_error
 from mewa_bench.service.models import AGENT, DONE, EVALUATE, FAILED, QUEUED, REJECTED, RESULTS, RUNNING, SCORE
 from mewa_bench.service.privileged import known_privileged
 from mewa_bench.service.routes.context import SubmissionId, session, settings_of, submitter
-from mewa_bench.service.uploads import (check_agent, check_archive, check_results, copy_limited, remove_upload,
+from mewa_bench.service.uploads import (check_agent, check_algorithm, check_archive, check_results, copy_limited, remove_upload,
                                         staging_path, store_agent, store_results)
 
 if TYPE_CHECKING:
@@ -57,8 +57,8 @@ def read_limited(upload: UploadFile, limit: int, what: str) -> bytes:
 
 
 def _commit(request: Request, token: Token, kind: str, suite: str, digest: str, agent_name: str, agent_sha256: str,
-            relative: Path, jobs: list[tuple[str, str, bool, tuple[int, ...]]], agent_args: dict[str, str] | None = None
-            ) -> int:
+            relative: Path, jobs: list[tuple[str, str, bool, tuple[int, ...]]], agent_args: dict[str, str] | None = None,
+            algorithm: str | None = None) -> int:
     """Store the submission and its jobs in one transaction, after the replay and quota checks; returns its id."""
     from sqlalchemy import func, select
     from sqlalchemy.exc import IntegrityError
@@ -82,7 +82,7 @@ def _commit(request: Request, token: Token, kind: str, suite: str, digest: str, 
                 raise quota_error("results" if kind == RESULTS else "agent", limit, oldest or now, now)
             submission = Submission(token_id=token.id, kind=kind, suite=suite, digest=digest, agent_name=agent_name,
                                     agent_sha256=agent_sha256, file=relative.as_posix(), created=now,
-                                    agent_args=None if agent_args is None else json.dumps(agent_args, sort_keys=True))
+                                    algorithm=algorithm, agent_args=None if agent_args is None else json.dumps(agent_args, sort_keys=True))
             s.add(submission)
             s.flush()
             for job_kind, board, hidden, seeds in jobs:
@@ -115,10 +115,15 @@ def _accepted(submission_id: int) -> dict[str, Any]:
 
 @router.post("/results", status_code=202, summary="Submit a results file")
 def submit_results(request: Request, file: UploadFile = File(..., description="A results file of `mewa-bench evaluate`."),
+                   algorithm: str | None = Form(None, description="The algorithm this run is one training run of "
+                                                                  "(runs under one name share a row of the algorithms "
+                                                                  "table; default: a one-run algorithm named after the "
+                                                                  "agent)."),
                    token=Depends(submitter)) -> dict[str, Any]:
     """Checked now (schema, suite and its hash, seeds, units); re-scored from its episodes by a worker."""
     settings = settings_of(request)
     request.app.state.rate.check(token.id, _rate(token, settings))
+    algorithm = check_algorithm(algorithm)
     data = read_limited(file, settings.limits.results_bytes, "the results file")
     with request.app.state.sessions() as s:
         privileged = known_privileged(s)
@@ -127,7 +132,8 @@ def submit_results(request: Request, file: UploadFile = File(..., description="A
     crash_point("results-stored")
     try:
         submission_id = _commit(request, token, RESULTS, checked.suite, checked.digest, checked.agent_name,
-                                checked.agent_sha256, relative, [(SCORE, checked.suite, False, checked.seeds)])
+                                checked.agent_sha256, relative, [(SCORE, checked.suite, False, checked.seeds)],
+                                algorithm=algorithm)
     except BaseException:
         remove_upload(settings, relative)
         raise
@@ -141,6 +147,10 @@ def submit_agent(request: Request,
                  suite: str = Form("narrow-v1", description="The public suite to evaluate on (and its hidden twin)."),
                  name: str | None = Form(None, description="The agent's name on the boards (default: the file name)."),
                  agent_arg: list[str] = Form([], description="key=value passed to make_agent (repeatable)."),
+                 algorithm: str | None = Form(None, description="The algorithm this run is one training run of "
+                                                                "(runs under one name share a row of the algorithms "
+                                                                "table; default: a one-run algorithm named after the "
+                                                                "agent)."),
                  token=Depends(submitter)) -> dict[str, Any]:
     """Queued for the workers: evaluated in the sandbox on `suite` and on its hidden twin."""
     from mewa_bench.service.boards import hidden_boards, hidden_twin
@@ -148,6 +158,7 @@ def submit_agent(request: Request,
     settings = settings_of(request)
     limits = settings.limits
     request.app.state.rate.check(token.id, _rate(token, settings))
+    algorithm = check_algorithm(algorithm)
     source = read_limited(agent, limits.agent_bytes, "the agent file")
     archive: Path | None = None
     try:
@@ -167,7 +178,7 @@ def submit_agent(request: Request,
     crash_point("agent-stored")
     try:
         submission_id = _commit(request, token, AGENT, suite, checked.digest, checked.name, checked.agent_sha256,
-                                relative, jobs, checked.agent_args)
+                                relative, jobs, checked.agent_args, algorithm=algorithm)
     except BaseException:
         remove_upload(settings, relative)
         raise
@@ -209,7 +220,8 @@ def describe(s: Session, submission: Submission, full: bool = False) -> dict[str
         scores[j.board] = stored if full or not j.hidden else public_scores(stored)
     return {
         "id": submission.id, "kind": submission.kind, "suite": submission.suite, "agent": submission.agent_name,
-        "agent_sha256": submission.agent_sha256, "created": submission.created, "status": status,
+        "agent_sha256": submission.agent_sha256, "algorithm": submission.algorithm, "created": submission.created,
+        "status": status,
         "reason": f"{failed[0]['board']}: {failed[0]['error']}" if failed else None, "jobs": shown, "scores": scores,
     }
 

@@ -10,8 +10,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from mewa_bench.leaderboard import algorithm_tables
+from mewa_bench.leaderboard.algorithms import AlgorithmRow
 from mewa_bench.leaderboard.board import Row
-from mewa_bench.leaderboard.render import EXPLANATION, HEADER, NOTES, cells
+from mewa_bench.leaderboard.render import CHECKPOINTS, EXPLANATION, HEADER, NOTES, cells
+from mewa_bench.protocol.scoring import Estimate
 from mewa_bench.service.web.layout import esc, page
 
 _ROW_FIELDS = tuple(f.name for f in dataclasses.fields(Row))
@@ -55,6 +58,37 @@ def table_row(content: dict[str, Any]) -> str:
             f'data-mean="{row.mean!r}"{submission}>' + "".join(tds) + "</tr>")
 
 
+def algorithm_row(content: dict[str, Any]) -> AlgorithmRow:
+    """The algorithms-table row inside the JSON API's `algorithms`."""
+    fields = {f.name: content[f.name] for f in dataclasses.fields(AlgorithmRow)}
+    for name in ("iqm", "mean", "adaptability", "over_best_fixed"):
+        fields[name] = Estimate(**fields[name])
+    return AlgorithmRow(**fields)
+
+
+def algorithms_html(board: dict[str, Any]) -> str:
+    """The algorithms table (the static boards' cells), each row with its source; empty when there is no run."""
+    if not board.get("algorithms"):
+        return ""
+    source_at = algorithm_tables.HEADER.index("algorithm")
+    head = "".join(f"<th>{esc(h)}</th>" + ("<th>source</th>" if i == source_at else "")
+                   for i, h in enumerate(algorithm_tables.HEADER))
+    rows = []
+    for content in board["algorithms"]:
+        row = algorithm_row(content)
+        tds = []
+        for i, text in enumerate(algorithm_tables.cells(row)):
+            tds.append(f'<td class="n">{esc(text)}</td>' if i in algorithm_tables.NUMERIC else f"<td>{esc(text)}</td>")
+            if i == source_at:
+                tds.append(f'<td class="source">{esc(content["source"])}</td>')
+        kind = "privileged" if row.privileged else "agent"
+        rows.append(f'<tr class="{kind}" data-algorithm="{esc(row.algorithm)}" data-runs="{row.runs}">'
+                    + "".join(tds) + "</tr>")
+    return (f'<h2>Algorithms</h2><table id="algorithms"><thead><tr>{head}</tr></thead><tbody>\n'
+            + "\n".join(rows) + f'\n</tbody></table><p class="muted">{esc(algorithm_tables.EXPLANATION)}</p>'
+            f"<h2>Checkpoints</h2><p class=\"muted\">{esc(CHECKPOINTS)}</p>")
+
+
 def _facts(board: dict[str, Any]) -> str:
     """What the board ranks: the suite and its hash (public), or only that it is hidden."""
     name = esc(board["board"])
@@ -94,7 +128,7 @@ def board_html(board: dict[str, Any], figure_version: str | None, plotted: int) 
     terms = "".join(f"<dt>{esc(t)}</dt><dd>{esc(text)}</dd>" for t, text in EXPLANATION)
     kind = "hidden" if board["hidden"] else "public"
     body = (f'<div id="board" data-board="{esc(board["board"])}" data-kind="{kind}">{_facts(board)}'
-            f"{_figure(board, figure_version, plotted)}\n"
+            f"{_figure(board, figure_version, plotted)}\n{algorithms_html(board)}"
             f'<table id="ranking"><thead><tr>{head}</tr></thead><tbody>\n{rows}\n</tbody></table>\n'
             f'<p class="muted">Sources: {"; ".join(esc(t) for t in SOURCES.values())}. Self-reported rows are '
             f"{'ranked' if board.get('uploads_ranked') else 'unranked'} on this server.</p>"

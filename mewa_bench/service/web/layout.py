@@ -9,7 +9,8 @@ from mewa_bench.service.jobs import utc_text
 STYLE = """body{font-family:system-ui,sans-serif;color:#222;max-width:90em;margin:1.5em auto;padding:0 1em}
 nav{margin-bottom:1em;font-size:.9em}nav a{margin-right:1em}
 table{border-collapse:collapse;margin:.5em 0 1.5em;font-size:.9em}#ranking{font-size:.8em}
-#ranking td,#ranking th{padding:.2em .3em}#ranking td.n{white-space:normal}#ranking{max-width:100%}
+#ranking,#algorithms{font-size:.8em;max-width:100%}#ranking td,#ranking th,#algorithms td,#algorithms th{padding:.2em .3em}
+#ranking td.n,#algorithms td.n{white-space:normal}
 .source{white-space:nowrap}
 th,td{border:1px solid #ccc;padding:.25em .6em;text-align:left;vertical-align:top}th{background:#f2f2f2}
 td.n{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
