@@ -20,6 +20,7 @@ steps/s, and >= 50,000 agent steps/s with --jobs 2.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import tempfile
 import time
@@ -85,7 +86,7 @@ def main() -> None:
     parser.add_argument("--learned", action="store_true", help="also time ranked wide-v2 runs of the learned baselines")
     args = parser.parse_args()
     if args.neural:
-        neural(seeds=tuple(range(min(args.seeds, 16))))
+        neural(seeds=tuple(range(min(args.seeds, 64))))
     if args.learned:
         learned()
     if args.neural or args.learned:
@@ -119,19 +120,33 @@ def readme_gru_agent(folder: Path) -> Path:
 
 
 def neural(seeds: tuple[int, ...]) -> None:
-    """One-lane vs batched torch GRU agent steps/s under isolated evaluate (narrow-v2)."""
+    """One-lane vs batched torch GRU agent steps/s under isolated evaluate (narrow-v2). The first row is the
+    one-lane agent with torch's default thread count (one per core: what a user's agent got before agent
+    processes were given one compute thread), the second with the runner's one thread."""
     print(f"narrow-v2, {len(seeds)} seeds, torch GRU (64 units)")
-    print(f"{'configuration':<40} {'agent steps/s':>14} {'x 1-lane':>8} {'play s':>7}")
+    print(f"{'configuration':<44} {'agent steps/s':>14} {'x 1-lane':>8} {'play s':>7}")
+    one_lane = REPO / "benchmarks/agents/gru_one_lane.py"
     with tempfile.TemporaryDirectory() as tmp:
         batched = readme_gru_agent(Path(tmp))
         base = None
-        for label, agent, kw in (("one-lane objects, default lanes", REPO / "benchmarks/agents/gru_one_lane.py", {}),
-                                 ("batched, default lanes", batched, {}),
-                                 ("batched, default lanes, --jobs 2", batched, dict(jobs=2))):
-            total, scoring, steps = timed(agent, seeds, suite="narrow-v2", **kw)
+        for label, agent, kw, threads in (
+                ("one-lane objects, torch's default threads", one_lane, {}, str(os.cpu_count())),
+                ("one-lane objects, one thread (the default)", one_lane, {}, None),
+                ("batched, default lanes", batched, {}, None),
+                ("batched, default lanes, --jobs 2", batched, dict(jobs=2), None),
+                ("runner's ceiling: random agent, --jobs 2", AGENT, dict(jobs=2, agent_args={"fault": "none"}), None)):
+            saved = os.environ.get("OMP_NUM_THREADS")
+            if threads is not None:
+                os.environ["OMP_NUM_THREADS"] = threads
+            try:
+                total, scoring, steps = timed(agent, seeds, suite="narrow-v2", **kw)
+            finally:
+                os.environ.pop("OMP_NUM_THREADS", None)
+                if saved is not None:
+                    os.environ["OMP_NUM_THREADS"] = saved
             rate = steps / (total - scoring)
             base = base or rate
-            print(f"{label:<40} {rate:>14,.0f} {rate / base:>8.1f} {total - scoring:>7.1f}")
+            print(f"{label:<44} {rate:>14,.0f} {rate / base:>8.1f} {total - scoring:>7.1f}")
 
 
 def learned() -> None:
