@@ -42,3 +42,15 @@ def small_task() -> Task:
     """An N = 3 task with M = K = 4 and a non-trivial order."""
     return Task(colors=(0, 2, 3), order=(2, 0, 3), K=4, M=4, rewards=(-1.0, -0.5, -0.2),
                 worker_blocks=(3, 5, 0), name="n3").with_distribution((0.5, 0.3, 0.15))
+
+
+@pytest.fixture(scope="module")
+def offline_hub(tmp_path_factory):
+    """Keep lerobot / huggingface_hub caches in a temp dir and forbid Hub access (for the module)."""
+    home = tmp_path_factory.mktemp("hf_home")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HF_HOME", str(home))
+        mp.setenv("HF_LEROBOT_HOME", str(home / "lerobot"))
+        mp.setenv("HF_HUB_OFFLINE", "1")
+        mp.setenv("HF_DATASETS_OFFLINE", "1")
+        yield

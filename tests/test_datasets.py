@@ -31,16 +31,7 @@ AGENT = REPO / "tests" / "agents" / "delayed_fault_agent.py"
 REPO_ID = "local/mewa-test"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def offline_hub(tmp_path_factory):
-    """Keep lerobot / huggingface_hub caches in a temp dir and forbid Hub access."""
-    home = tmp_path_factory.mktemp("hf_home")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("HF_HOME", str(home))
-        mp.setenv("HF_LEROBOT_HOME", str(home / "lerobot"))
-        mp.setenv("HF_HUB_OFFLINE", "1")
-        mp.setenv("HF_DATASETS_OFFLINE", "1")
-        yield
+pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
 
 
 def load_lerobot(root: Path):

@@ -467,11 +467,14 @@ def test_a_cgroup_v2_group_gets_its_limits_and_its_first_process(tmp_path):
     (tmp_path / "cgroup.controllers").write_text("cpu memory pids\n")
     (parent / "cgroup.controllers").write_text("cpu memory pids\n")
     (parent / "cgroup.subtree_control").write_text("cpu\n")
+    (parent / "cgroup.type").write_text("domain\n")  # not the root group,
+    (parent / "cgroup.procs").write_text(f"{os.getpid()}\n")  # and it holds the server's process
     group = Group.make(tmp_path, 2, (512 << 20, 16))
     (directory,) = group.directories
     assert directory.parent == parent and directory.name.startswith("mewa-sandbox-")
     assert (directory / "memory.max").read_text() == str(512 << 20) and (directory / "pids.max").read_text() == "16"
     assert (parent / "cgroup.subtree_control").read_text() in ("+memory", "+pids")  # both were enabled in turn
+    assert (parent / "mewa-server" / "cgroup.procs").read_text() == str(os.getpid())  # moved out of the way first
     joined = subprocess.run([*group.join_prefix(), "/bin/sh", "-c", "echo $$"], capture_output=True, text=True,
                             check=True)
     assert (directory / "cgroup.procs").read_text().split() == joined.stdout.split()  # it joined, then exec'd

@@ -29,15 +29,7 @@ from mewa_bench.protocol.config import default_seeds, env_seed
 SMALL = {"random": 600, "random-task-specific": 600, "learning-histories": 1, "expert": 1}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def offline_hub(tmp_path_factory):
-    """Keep lerobot / huggingface_hub caches in a temp dir and forbid Hub access."""
-    home = tmp_path_factory.mktemp("hf_home")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("HF_HOME", str(home))
-        mp.setenv("HF_LEROBOT_HOME", str(home / "lerobot"))
-        mp.setenv("HF_HUB_OFFLINE", "1")
-        yield
+pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
 
 
 def small_spec(suite: str, tier: str):
@@ -372,3 +364,16 @@ def test_the_expert_plays_the_same_episodes_in_parallel_processes():
     two = play_expert_parallel(path, suite.name, suite.tasks, task_idx, workers, keys, seeds, jobs=2)
     for field in ("episode", "t", "state", "action", "next_state", "reward", "lengths", "returns"):
         assert np.array_equal(getattr(one, field), getattr(two, field)), field
+
+
+def test_a_full_size_build_gives_the_sha256_the_shipped_catalog_records(tmp_path):
+    """The 1 M-frame random tier of narrow-v2 (about 20 s), rebuilt from scratch: the archive's sha256 is the one
+    the shipped catalog's `builds` section records, so every recorded build can be checked the same way."""
+    from mewa_bench.datasets.build import build_named
+
+    catalog = load_catalog(Path(__file__).resolve().parents[1] / "datasets" / "index.json")
+    recorded = {b["name"]: b for b in catalog["builds"]}
+    assert {"narrow-v2-train-random", "wide-v2-train-expert"} <= set(recorded)
+    result = build_named("narrow-v2-train-random", tmp_path, jobs=2)
+    assert result.entry["frames"] >= 1_000_000 and result.entry["frames"] == recorded["narrow-v2-train-random"]["frames"]
+    assert result.matches_record is True, (result.entry["sha256"], result.recorded_sha256)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 ROOT = Path("/sys/fs/cgroup")
 GROUP_PREFIX = "mewa-sandbox"
+SERVER_LEAF = "mewa-server"  # cgroup v2: where the server's own processes go so that its group can delegate
 _COUNTER = itertools.count()
 FALLBACK = ("per-process rlimits only: each process's address space and the sandbox user's process count are capped, "
             "but not the memory of the sandbox's processes together")
@@ -77,6 +78,8 @@ def _v2_parent(root: Path) -> Path | None:
     if own is None:
         return None
     parent = root / own.lstrip("/")
+    if parent.name == SERVER_LEAF:  # this process was moved into the leaf: the sandboxes' groups go beside it
+        parent = parent.parent
     try:
         available = (parent / "cgroup.controllers").read_text().split()
     except OSError:
@@ -241,8 +244,24 @@ def sweep_stale(root: Path, version: int) -> list[Path]:
 
 
 def _enable_v2_controllers(parent: Path) -> None:
-    """Let groups under `parent` use the memory and pids controllers."""
+    """Let groups under `parent` use the memory and pids controllers.
+
+    cgroup v2 hands controllers to a group's children only while the group itself holds no process (the
+    root group aside, which has no `cgroup.type`): a server started in a group of its own (a systemd
+    service with Delegate=yes, a container) first moves that group's processes into a leaf, SERVER_LEAF,
+    beside the sandboxes' groups."""
     control = parent / "cgroup.subtree_control"
-    enabled = set(control.read_text().split())
-    for controller in {"memory", "pids"} - enabled:
+    missing = {"memory", "pids"} - set(control.read_text().split())
+    if not missing:
+        return
+    procs = (parent / "cgroup.procs").read_text().split() if (parent / "cgroup.procs").exists() else []
+    if procs and (parent / "cgroup.type").exists():
+        leaf = parent / SERVER_LEAF
+        leaf.mkdir(exist_ok=True)
+        for pid in procs:
+            try:
+                (leaf / "cgroup.procs").write_text(pid)
+            except ProcessLookupError:  # it ended meanwhile
+                pass
+    for controller in sorted(missing):
         control.write_text(f"+{controller}")
