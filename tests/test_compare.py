@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -112,3 +113,15 @@ def test_the_compare_command_prints_verdicts_and_writes_the_png(runs: Path, tmp_
     assert "good better" in result.output and png.stat().st_size > 0
     twice = CliRunner().invoke(app, ["compare", str(runs / "good-*"), str(runs / "good-narrow-v1-seed1")])
     assert twice.exit_code == 1 and "listed twice" in twice.output
+
+
+def test_a_run_of_another_protocol_is_refused_naming_the_file(runs: Path, tmp_path: Path) -> None:
+    old = tmp_path / "old-narrow-v1-seed0"
+    shutil.copytree(runs / "good-narrow-v1-seed0", old)
+    path = old / "results-narrow-v1.json"
+    content = json.loads(path.read_text())
+    content["protocol_version"] = 1
+    path.write_text(json.dumps(content))
+    with pytest.raises(CompareError, match="protocol") as e:
+        compare([str(runs / "good-narrow-v1-seed1"), str(old)])
+    assert str(path) in str(e.value)

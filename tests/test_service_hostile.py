@@ -45,8 +45,8 @@ def server(tmp_path_factory, hidden_dir):
     data = tmp_path_factory.mktemp("hostile") / "data"
     shutil.copytree(hidden_dir, data / "hidden")
     running = Server(data, None, "--seeds", "1", "--workers", "1", "--job-seconds", "20", "--scratch-mb", "32",
-                     "--memory-mb", "1024",
-                     "--lease-seconds", "5").start()
+                     "--memory-mb", "1024", "--lease-seconds", "5",
+                     "--log-level", "info").start()  # the workers' job lines too: the log is checked for agent text
     yield running
     running.stop()
 

@@ -373,7 +373,7 @@ def test_a_full_size_build_gives_the_sha256_the_shipped_catalog_records(tmp_path
 
     catalog = load_catalog(Path(__file__).resolve().parents[1] / "datasets" / "index.json")
     recorded = {b["name"]: b for b in catalog["builds"]}
-    assert {"narrow-v2-train-random", "wide-v2-train-expert"} <= set(recorded)
+    assert {"narrow-v2-train-random", "wide-v2-train-learning-histories"} <= set(recorded)
     result = build_named("narrow-v2-train-random", tmp_path, jobs=2)
     assert result.entry["frames"] >= 1_000_000 and result.entry["frames"] == recorded["narrow-v2-train-random"]["frames"]
     assert result.matches_record is True, (result.entry["sha256"], result.recorded_sha256)
