@@ -8,7 +8,7 @@ a token (made straight in the database before the clock) and send their share of
   replay: the shipped narrow-v1 results files (every agent in submissions/) cut to the board's seeds and
   scored again (`protocol.results.finish`, as `evaluate` does), then runs of the random agent with its
   agent arg `seed` = 1000, 1001, ... (evaluated here, in-process, before the clock starts).
-- Agent submissions: submissions/random/agent.py with its agent arg `seed` = 0..19 (distinct submissions:
+- Agent submissions: submissions/random/agent.py with its agent arg `seed` = 2000..2019 (distinct submissions:
   the replay check hashes the agent file, its args and the suite), evaluated in the sandbox on narrow-v1
   (and on its hidden twin with `--hidden`).
 
@@ -28,6 +28,7 @@ import asyncio
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import socket
@@ -111,8 +112,9 @@ def results_uploads(count: int, seeds: int, tokens: list[str], scratch: Path) ->
 
 
 def agent_submissions(count: int, tokens: list[str]) -> list[Sent]:
-    """`count` distinct agent submissions: the random agent with its `seed` arg 0..count-1."""
-    return [Sent("agent", f"random-load-{i:02d}", tokens[i % len(tokens)], agent_args={"seed": str(i)})
+    """`count` distinct agent submissions: the random agent with its `seed` arg 2000..2000+count-1 (never the
+    shipped random run's seed 0, whose results are among the uploads: the same run twice is one row)."""
+    return [Sent("agent", f"random-load-{i:02d}", tokens[i % len(tokens)], agent_args={"seed": str(2000 + i)})
             for i in range(count)]
 
 
@@ -196,17 +198,17 @@ def measure_baseline(uploads: list[Sent], seeds: int, scratch: Path, sample: int
     from mewa_bench.protocol.runner import evaluate
     from mewa_bench.service.scoring import score_upload
     from mewa_bench.service.settings import Settings
-    from mewa_bench.service.uploads import check_results
+    from mewa_bench.service.uploads import check_results, parse_results
 
     settings, suites = Settings(scratch / "baseline", seeds=seeds), SuiteCache()
     chosen = uploads[1:sample + 1]
-    score_upload(check_results(uploads[0].body, settings, suites).results, tuple(range(seeds)), 0)  # imports, caches
+    score_upload(parse_results(uploads[0].body), tuple(range(seeds)), 0)  # imports, caches
     start = time.perf_counter()
     checked = [check_results(u.body, settings, suites) for u in chosen]
     check = (time.perf_counter() - start) / len(chosen)
     start = time.perf_counter()
-    for c in checked:
-        score_upload(c.results, c.seeds, 0)
+    for u, c in zip(chosen, checked):  # as a worker does: the stored bytes parsed again, then re-scored
+        score_upload(parse_results(u.body), c.seeds, 0)
     score = (time.perf_counter() - start) / len(chosen)
     start = time.perf_counter()
     evaluate(EvalConfig(agent_path=AGENT, suite=SUITE, seeds=tuple(range(seeds)), out=scratch / "baseline.json",
@@ -286,6 +288,9 @@ def tables(data_dir: Path, db: str | None) -> dict[str, list[dict[str, Any]]]:
         engine.dispose()
 
 
+GAVE_WAY = re.compile(r"its row gave way to submission (\d+)")
+
+
 def check_exactly_once(items: list[Sent], data_dir: Path, db: str | None, boards_per_agent: int) -> list[str]:
     """Every submission stored once and scored once; returns the problems found (none: all good)."""
     problems = []
@@ -302,6 +307,10 @@ def check_exactly_once(items: list[Sent], data_dir: Path, db: str | None, boards
     entries_of_job: dict[int, list[dict]] = {}
     for entry in rows["entries"]:
         entries_of_job.setdefault(entry["job_id"], []).append(entry)
+    # An upload whose run the server then evaluated itself (the shipped random agent's results are what the
+    # server's evaluation of random with seed 0 plays) gives its row way: one row per run, the server's.
+    superseded = {j["id"]: int(m.group(1)) for j in rows["jobs"] if (m := GAVE_WAY.search(j["note"] or ""))}
+    boards_of = {(e["submission_id"], e["board"]) for e in rows["entries"]}
     for item in accepted:
         row = submissions.get(item.submission_id)
         if row is None or row["agent_name"] != item.name or row["kind"] != item.kind:
@@ -314,6 +323,11 @@ def check_exactly_once(items: list[Sent], data_dir: Path, db: str | None, boards
             problems.append(f"submission {item.submission_id}: {len(jobs)} jobs")
         for job in jobs:
             entries = entries_of_job.get(job["id"], [])
+            if job["id"] in superseded:
+                if job["state"] != "done" or entries or (superseded[job["id"]], job["board"]) not in boards_of:
+                    problems.append(f"job {job['id']} of submission {item.submission_id} gave way to submission "
+                                    f"{superseded[job['id']]}, which has no row on {job['board']}")
+                continue
             if job["state"] != "done" or len(entries) != 1:
                 problems.append(f"job {job['id']} of submission {item.submission_id}: {job['state']}, "
                                 f"{len(entries)} board entries, error {job['error']}")
@@ -321,8 +335,9 @@ def check_exactly_once(items: list[Sent], data_dir: Path, db: str | None, boards
                 problems.append(f"submission {item.submission_id}: the server's scores differ from finish()'s")
         if item.final_status != "done":
             problems.append(f"submission {item.submission_id} ({item.name}) ended {item.final_status}")
-    if len(rows["entries"]) != sum(len(j) for j in jobs_of.values()):
-        problems.append(f"{len(rows['entries'])} board entries for {sum(len(j) for j in jobs_of.values())} jobs")
+    if len(rows["entries"]) != sum(len(j) for j in jobs_of.values()) - len(superseded):
+        problems.append(f"{len(rows['entries'])} board entries for {sum(len(j) for j in jobs_of.values())} jobs, "
+                        f"{len(superseded)} of which gave way")
     stored = len(list((data_dir / "uploads" / "results").glob("*.json")))
     agents = len(list((data_dir / "uploads" / "agents").iterdir())) if (data_dir / "uploads" / "agents").exists() else 0
     want_results = sum(1 for i in accepted if i.kind == "results")
@@ -430,7 +445,8 @@ def main() -> None:
             print(f"  - {p}")
         sys.exit(1)
     print(f"\nexactly once: {len(items)} submissions, each stored once (one row, one file) and scored once "
-          f"(its jobs done, one board entry per job, re-scored uploads equal to finish()'s scores); replay refused")
+          f"(its jobs done, one board entry per job but where an upload's run gave way to the server's own "
+          f"evaluation of it, re-scored uploads equal to finish()'s scores); replay refused")
     shutil.rmtree(root, ignore_errors=True)
 
 
