@@ -6,8 +6,8 @@ each with its `source`: server-evaluated (the server ran the agent file in its s
 self-reported (a results file the submitter ran: re-scored from its episodes, but played where the
 server could not see; unranked unless the server's `rank_uploads` is set) or reference,
 with the suite's exact reference lines and each agent's adaptation curve s_1..s_10 with its CIs.
-Above the rows, the algorithms table (`algorithm_table`): the runs a submitter sent under one
-algorithm name, with statistics over training runs as the static boards have them.
+Above the rows of a public board, the algorithms table (`algorithm_table`): the runs a submitter
+sent under one algorithm name, with statistics over training runs as the static boards have them.
 A hidden board shows scores only: never the hidden suite, its pairs, its size or the runs' units.
 Its reference lines (the fixed policies' and the optimum's means over the whole suite) are shown:
 one number each, which the agents' rows are read against, and from which no pair can be learned.
@@ -109,7 +109,9 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
         rows.append({**dataclasses.asdict(r), "source": REFERENCE_SOURCE, "submission_id": None, "curve": [r.mean] * EPISODES_PER_PAIR,
                      "curve_low": None, "curve_high": None})  # fixed policies: a flat curve
     rows.sort(key=lambda r: (-r["mean"], KIND_ORDER[r["kind"]], r["name"]))
-    algorithms = [] if suite is None else algorithm_table(suite, entries, submitters, settings.rank_uploads)
+    # Hidden boards have none: its fractions of (run, pair) cells would tell the hidden suite's number of pairs.
+    algorithms = [] if hidden or suite is None else algorithm_table(suite, entries, submitters,
+                                                                     settings.rank_uploads)
     return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
             "suite": None if hidden or suite is None else {"name": suite.name, "sha256": suite.sha256},
             "seeds": len(settings.seeds_for(name)), "entries": len(entries), "uploads_ranked": settings.rank_uploads,
