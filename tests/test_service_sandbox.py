@@ -13,6 +13,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -119,7 +120,11 @@ def test_the_agent_runs_unprivileged_offline_and_limited_seeing_only_what_it_nee
                                "Seccomp": "2"}
     assert facts["interfaces"] == ["lo"] and facts["hostname"] == "sandbox"
     assert facts["pid"] < 10  # its own pid namespace
-    assert facts["limits"] == {"RLIMIT_AS": [3 << 30] * 2, "RLIMIT_CPU": [300, 305], "RLIMIT_NPROC": [32, 32],
+    from mewa_bench.service.cgroups import cgroup_support
+    from mewa_bench.service.sandbox import SANDBOXES_SHARING_THE_UID
+
+    processes = 32 * (1 if cgroup_support().version == 0 else SANDBOXES_SHARING_THE_UID)  # a group holds the 32
+    assert facts["limits"] == {"RLIMIT_AS": [3 << 30] * 2, "RLIMIT_CPU": [300, 305], "RLIMIT_NPROC": [processes] * 2,
                                "RLIMIT_FSIZE": [1 << 20] * 2, "RLIMIT_NOFILE": [200, 200], "RLIMIT_CORE": [0, 0]}
     assert "MEWA_TEST_SECRET" not in facts["environment"] and "MEWA_SANDBOX" not in facts["environment"]
     assert facts["environment"]["HOME"] == facts["cwd"] == str(tmp_path / "scratch")
@@ -248,6 +253,38 @@ def test_a_fork_bomb_stops_at_the_process_limit_and_leaves_nothing_behind(sandbo
     assert wait_until_gone(tmp_path / "scratch") == []
 
 
+def test_one_sandboxs_processes_do_not_count_against_anothers(sandbox, tmp_path):
+    from mewa_bench.service.cgroups import cgroup_support
+
+    if cgroup_support().version == 0:  # the per-uid rlimit alone is shared by every sandbox (the fallback's limit)
+        if os.environ.get("MEWA_REQUIRE_SANDBOX", "").strip() not in ("", "0"):
+            pytest.fail(f"MEWA_REQUIRE_SANDBOX is set but {cgroup_support().describe()}")
+        pytest.skip(f"no control groups here: {cgroup_support().describe()}")
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir()
+    second.mkdir()
+    outcome: dict[str, object] = {}
+
+    def hold_twelve() -> None:
+        try:
+            outcome["first"] = run(first, "fork_bomb_agent.py", agent_args={"children": "12", "hold": "8"},
+                                   limits=SandboxLimits(processes=16, call_seconds=60))
+        except Exception as e:  # reported below
+            outcome["first"] = e
+
+    holder = threading.Thread(target=hold_twelve)
+    holder.start()
+    deadline = time.monotonic() + 60
+    while len(sandbox_processes(first / "scratch")) < 13 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert len(sandbox_processes(first / "scratch")) >= 13, "the first sandbox never held its 12 children"
+    results = run(second, "fork_bomb_agent.py", agent_args={"children": "10"}, limits=SandboxLimits(processes=16))
+    holder.join()
+    assert isinstance(outcome["first"], dict), outcome  # both played their unit: neither failed for lack of processes
+    assert results["suite"] == outcome["first"]["suite"] and results["scores"] and outcome["first"]["scores"]
+    assert wait_until_gone(first / "scratch") == [] and wait_until_gone(second / "scratch") == []
+
+
 def test_an_agent_that_burns_cpu_is_stopped_at_its_cpu_time_limit(sandbox, tmp_path):
     started = time.monotonic()
     with pytest.raises(SandboxViolation) as caught:
@@ -330,9 +367,10 @@ def test_the_wall_clock_limit_stops_a_run_mid_call(sandbox, tmp_path):
     assert wait_until_gone(tmp_path / "scratch") == []
 
 
-def test_the_scratch_directory_is_capped_as_a_whole(sandbox, tmp_path):
+@pytest.mark.parametrize("mode", ["write", "unlinked"])  # unlinked: files removed while the agent keeps them open
+def test_the_scratch_directory_is_capped_as_a_whole(sandbox, tmp_path, mode):
     with pytest.raises(SandboxViolation) as caught:  # each file is within the file-size limit, together they are not
-        run(tmp_path, "file_agent.py", agent_args={"path": "big.bin", "mode": "write", "size": str(3 << 20),
+        run(tmp_path, "file_agent.py", agent_args={"path": "big.bin", "mode": mode, "size": str(3 << 20),
                                                    "copies": "40"},
             limits=SandboxLimits(scratch_bytes=16 << 20, file_bytes=4 << 20))
     assert caught.value.rule == "scratch_size"

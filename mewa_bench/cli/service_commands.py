@@ -54,7 +54,7 @@ def serve(ctx: typer.Context,
           rate_limit: int = typer.Option(None, min=0, help="Submissions per token and minute (default 60)."),
           daily_results: int = typer.Option(None, min=0, help="Results uploads per token and day (default 200)."),
           daily_agents: int = typer.Option(None, min=0, help="Agent submissions per token and day (default 20)."),
-          max_results_mb: float = typer.Option(None, help="Largest results file in MB (default 64)."),
+          max_results_mb: float = typer.Option(None, help="Largest results file in MB (default 16)."),
           max_agent_mb: float = typer.Option(None, help="Largest agent file in MB (default 1)."),
           max_checkpoint_mb: float = typer.Option(None, help="Largest checkpoint archive in MB (default 256)."),
           uploads_in_flight: int = typer.Option(None, min=1, help="Submissions received at once; more get a 503 "

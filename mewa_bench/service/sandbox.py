@@ -19,7 +19,8 @@ which talks to it over two pipes) is started inside the sandbox, through a `Laun
   package; it confines itself (below), then changes to the scratch directory and loads the agent.
 - a control group per sandbox (`service.cgroups`, v1 or v2, made under the server's own group):
   memory and processes of the whole process tree; where none can be made, the per-process rlimits
-  below are all there is (`cgroups.cgroup_support` says which).
+  below are all there is (`cgroups.cgroup_support` says which), and the process rlimit, which counts
+  the sandbox user's processes everywhere, is then shared by the sandboxes that run at once.
 - rlimits set by the agent process on itself before the agent loads: address space (the protocol's
   memory limit), CPU time, processes + threads, file size, open files, no core dumps.
 - seccomp (x86_64, aarch64): socket() of any family but AF_UNIX fails with EACCES; no new
@@ -93,8 +94,11 @@ class SandboxLimits:
     tmp_bytes: int = 64 << 20  # size of /tmp and of /dev/shm (memory-backed)
     wall_seconds: float | None = 6 * 3600  # the whole sandboxed_evaluate call, enforced mid-call by the watchdog
     group_memory_bytes: int | None = None  # memory of the whole process tree (its control group); None: memory_bytes
-    scratch_bytes: int = 1 << 30  # the scratch directory's size on disk, polled by the watchdog
+    scratch_bytes: int = 1 << 30  # the scratch directory's size on disk (removed files kept open count), polled
     output_bytes: int = 1 << 20  # the agent's stdout and stderr kept in its log (output_log)
+
+
+SANDBOXES_SHARING_THE_UID = 32  # the per-uid process rlimit, in sandboxes' worth, when a group holds each one
 
 
 class SandboxCancelled(RuntimeError):
@@ -177,7 +181,8 @@ def sandboxed_evaluate(agent_file: Path, suite: str | Path, out: Path, *, scratc
                             pairs=pairs, launcher=launcher, **({} if lanes is None else {"lanes": lanes}))
         watchdog = Watchdog(functools.partial(_kill_sandbox, group, scratch), wall_seconds=limits.wall_seconds,
                             scratch=scratch, scratch_bytes=limits.scratch_bytes, memory_bytes=_group_memory(limits),
-                            oom_kills=None if group is None else group.oom_kills, cancel=cancel)
+                            oom_kills=None if group is None else group.oom_kills, cancel=cancel,
+                            pids=functools.partial(_sandbox_pids, group, scratch))
         units: list[tuple[int, int]] = [(0, 0)]
 
         def watched(done: int, total: int) -> None:
@@ -237,18 +242,30 @@ def _stopped(stop: Stop, agent_file: Path, units: tuple[int, int], out: Path) ->
                                        f"they are kept in {out})")
 
 
-def _kill_sandbox(group: Group | None, scratch: Path) -> None:
-    """SIGKILL every process of the sandbox: its group's, or (without one) those started with its scratch as HOME."""
+def _sandbox_pids(group: Group | None, scratch: Path) -> set[int]:
+    """The sandbox's processes: its group's, or (without one) those started with its scratch as HOME."""
     if group is not None:
-        group.kill()
-        return
-    marker = f"HOME={scratch}".encode()
+        return group.pids()
+    marker, found = f"HOME={scratch}".encode(), set()
     for entry in Path("/proc").iterdir():
         try:
             if entry.name.isdigit() and marker in (entry / "environ").read_bytes().split(b"\0"):
-                os.kill(int(entry.name), signal.SIGKILL)
-        except (OSError, ValueError):
+                found.add(int(entry.name))
+        except OSError:
             pass  # gone meanwhile, or not ours
+    return found
+
+
+def _kill_sandbox(group: Group | None, scratch: Path) -> None:
+    """SIGKILL every process of the sandbox."""
+    if group is not None:
+        group.kill()
+        return
+    for pid in _sandbox_pids(None, scratch):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass  # gone meanwhile
 
 
 def sandbox_launcher(readable: list[Path], scratch: Path, limits: SandboxLimits,
@@ -261,7 +278,10 @@ def sandbox_launcher(readable: list[Path], scratch: Path, limits: SandboxLimits,
     prefix, layout = _bwrap_command(shown, scratch, limits)
     if group is not None:
         prefix = [*group.join_prefix(), *prefix]
-    settings = {"cpu_seconds": limits.cpu_seconds, "processes": limits.processes, "file_bytes": limits.file_bytes,
+    # RLIMIT_NPROC counts every process of the sandbox user, in every sandbox at once; with a group, whose pids
+    # limit is this sandbox's own, the rlimit is only a backstop that leaves room for the other sandboxes
+    processes = limits.processes * (1 if group is None else SANDBOXES_SHARING_THE_UID)
+    settings = {"cpu_seconds": limits.cpu_seconds, "processes": processes, "file_bytes": limits.file_bytes,
                 "open_files": limits.open_files, "scratch": str(scratch), "writable": ["/tmp", "/dev", "/proc/self"],
                 "read_only": [str(p) for p in layout], "private": [os.path.realpath(p) for p in private or []],
                 "visible": [os.path.realpath(p) for p in [*shown, scratch]]}

@@ -23,7 +23,7 @@ HIDDEN_SUFFIX = "-hidden"  # a hidden suite's board is named after its public tw
 class Limits:
     """Upload sizes, request rates and quotas; a token may carry its own rate and quotas (`tokens`)."""
 
-    results_bytes: int = 64 * MiB  # a full wide-v2 results file is ~9 MB
+    results_bytes: int = 16 * MiB  # parsed whole in memory; a ranked results file is 0.2-0.4 MB (schema 2: ~9 MB)
     agent_bytes: int = 1 * MiB
     checkpoint_bytes: int = 256 * MiB
     checkpoint_unpacked_bytes: int = 1024 * MiB

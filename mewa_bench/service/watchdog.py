@@ -1,7 +1,7 @@
 """A sandbox's watchdog: a thread that stops the sandbox mid-call when a limit of the whole run is broken.
 
-It polls the run's wall-clock deadline, the scratch directory's size, the sandbox group's
-out-of-memory kills and the caller's `cancel` (e.g. the worker lost its job's lease), and on the
+It polls the run's wall-clock deadline, the scratch directory's size (with the files the agent removed
+from it but keeps open, which still take their space), the sandbox group's out-of-memory kills and the caller's `cancel` (e.g. the worker lost its job's lease), and on the
 first of them records why and kills every process of the sandbox. The evaluation then sees the
 agent process die, and the caller reports the watchdog's reason instead of the crash.
 """
@@ -48,13 +48,35 @@ def scratch_usage(scratch: Path, stop_above: int) -> tuple[int, int]:
     return used, entries
 
 
+def unlinked_open_bytes(pids: set[int], device: int) -> int:
+    """Bytes on `device` held by files that the processes `pids` keep open after removing them from their directory."""
+    counted: dict[int, int] = {}
+    for pid in pids:
+        fds = f"/proc/{pid}/fd"
+        try:
+            names = os.listdir(fds)
+        except OSError:
+            continue  # gone meanwhile
+        for name in names:
+            try:
+                if not os.readlink(f"{fds}/{name}").endswith(" (deleted)"):
+                    continue
+                info = os.stat(f"{fds}/{name}")
+            except OSError:
+                continue
+            if info.st_dev == device and info.st_nlink == 0:
+                counted[info.st_ino] = info.st_blocks * 512
+    return sum(counted.values())
+
+
 class Watchdog:
     """Watches one sandboxed run; `stop` is None until it stopped the sandbox, then says why."""
 
     def __init__(self, kill: Callable[[], None], *, wall_seconds: float | None, scratch: Path, scratch_bytes: int,
                  memory_bytes: int, oom_kills: Callable[[], int] | None = None,
-                 cancel: Callable[[], str | None] | None = None, poll_seconds: float = POLL_SECONDS) -> None:
-        self._kill, self._scratch, self._scratch_bytes = kill, scratch, scratch_bytes
+                 cancel: Callable[[], str | None] | None = None, pids: Callable[[], set[int]] = set,
+                 poll_seconds: float = POLL_SECONDS) -> None:
+        self._kill, self._scratch, self._scratch_bytes, self._pids = kill, scratch, scratch_bytes, pids
         self._wall, self._memory, self._oom_kills, self._cancel = wall_seconds, memory_bytes, oom_kills, cancel
         self._poll = poll_seconds
         self._started = time.monotonic()
@@ -88,6 +110,8 @@ class Watchdog:
         if self._polls % SCRATCH_EVERY:
             return None
         used, entries = scratch_usage(self._scratch, self._scratch_bytes)
+        if used <= self._scratch_bytes:
+            used += unlinked_open_bytes(self._pids(), os.stat(self._scratch).st_dev)
         if used > self._scratch_bytes:
             return Stop("scratch_size", f"the agent's scratch directory grew past its limit of {self._scratch_bytes:,} "
                                         f"bytes; the sandbox was stopped")

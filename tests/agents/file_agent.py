@@ -1,5 +1,6 @@
-"""Test agent: reads or writes the file at its agent arg `path` when it first acts (`mode`: read or write;
-a write writes a line, or `size` bytes if given; `copies`: that many files, path.0, path.1, ..., then it waits 30 s).
+"""Test agent: reads or writes the file at its agent arg `path` when it first acts (`mode`: read, write or unlinked;
+a write writes a line, or `size` bytes if given; `copies`: that many files, path.0, path.1, ..., then it waits 30 s;
+unlinked: as write with copies, but each file is removed from its directory while the agent keeps it open).
 
 A relative path is relative to the agent's working directory (its scratch directory in the sandbox).
 """
@@ -21,7 +22,15 @@ class Agent:
             if not self.copies:
                 self.path.write_bytes(data)
                 return 0
+            self.kept = []
             for i in range(int(self.copies)):
-                self.path.with_name(f"{self.path.name}.{i}").write_bytes(data)
+                copy = self.path.with_name(f"{self.path.name}.{i}")
+                if self.mode == "unlinked":
+                    self.kept.append(copy.open("wb"))
+                    copy.unlink()
+                    self.kept[-1].write(data)
+                    self.kept[-1].flush()
+                else:
+                    copy.write_bytes(data)
             time.sleep(30)
         return 0
