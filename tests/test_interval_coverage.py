@@ -1,11 +1,11 @@
-"""Within-run intervals on synthetic runs: coverage of the corrected stratified bootstrap at 3, 5 and 16 seeds."""
+"""Within-run intervals on synthetic runs: coverage of the corrected stratified bootstrap at 2 to 16 seeds per pair."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mewa_bench.protocol.scoring import MIN_SEEDS_COVERED, control_variates, stratified_estimates
+from mewa_bench.protocol.scoring import CV_MIN_SEEDS, control_variates, stratified_estimates
 
 P, K = 16, 10
 REPS = 300  # the SE of a coverage of 0.95 over 300 repetitions is 0.013
@@ -27,23 +27,27 @@ def synthetic_run(rng: np.random.Generator, seeds: int, mu: np.ndarray, gain: fl
     return stratified_estimates(columns, pairs, samples=300, seed=int(rng.integers(1 << 31)))
 
 
-@pytest.mark.parametrize("seeds", [3, 5, 16])
+@pytest.mark.parametrize("seeds", [2, 3, 5, 8, 16])
 def test_coverage_of_within_run_intervals(seeds: int) -> None:
-    """Without control variates the corrected interval covers ~95% at every seed count; with them (chosen on the
-    pair's other seeds) it covers ~95% from MIN_SEEDS_COVERED seeds per pair and a little less below, where the
-    scores carry a warning."""
+    """The corrected interval covers ~95% at every seed count: below CV_MIN_SEEDS seeds per pair the scores are
+    unadjusted (control variates chosen on 2-4 other seeds covered only 89-92%), from there the control variates
+    narrow the interval and keep its coverage."""
     rng = np.random.default_rng(seeds)
     mu, gain = rng.uniform(0.5, 0.9, P), 0.05
     truth = {"mean": mu.mean() + gain / 2, "adaptability": gain}
     hits = {f"{prefix}{k}": 0 for prefix in ("", "raw_") for k in truth}
+    widths = dict.fromkeys(hits, 0.0)
     for _ in range(REPS):
         est = synthetic_run(rng, seeds, mu, gain)
         for name in hits:
             value = truth[name.removeprefix("raw_")]
             hits[name] += est[name].low <= value <= est[name].high
+            widths[name] += est[name].high - est[name].low
     coverage = {k: v / REPS for k, v in hits.items()}
-    assert 0.91 <= coverage["raw_mean"] <= 0.99 and 0.91 <= coverage["raw_adaptability"] <= 0.99, coverage
-    if seeds >= MIN_SEEDS_COVERED:
-        assert 0.92 <= coverage["mean"] <= 0.99 and 0.92 <= coverage["adaptability"] <= 0.99, coverage
-    else:
-        assert coverage["mean"] >= 0.85 and coverage["adaptability"] >= 0.85, coverage
+    for name, value in coverage.items():
+        assert 0.915 <= value <= 0.985, coverage
+    for name in truth:
+        if seeds < CV_MIN_SEEDS:
+            assert widths[name] == widths[f"raw_{name}"], widths  # the same estimator
+        else:
+            assert widths[name] < 0.8 * widths[f"raw_{name}"], widths  # the control variates pay off

@@ -17,7 +17,7 @@ from mewa_bench.game.normalise import normalised_return
 from mewa_bench.protocol import policy_agent
 from mewa_bench.protocol.config import EvalConfig
 from mewa_bench.protocol.runner import evaluate
-from mewa_bench.protocol.scoring import (control_variates, episode_scores, interquartile_mean, score_units, skill_of,
+from mewa_bench.protocol.scoring import (CV_MIN_SEEDS, control_variates, episode_scores, interquartile_mean, score_units, skill_of,
                                          stratified_resamples)
 
 K = 10
@@ -47,7 +47,8 @@ def test_a_runs_iqm_is_rliables_over_its_pair_means(narrow: Suite) -> None:
     assert scores.pair_curves.shape == (6, K) and scores.pairs == (0, 3, 5, 8, 9, 13)
     assert scores.iqm.mean == rliable.aggregate_iqm(scores.pair_curves.mean(axis=1)[None, :])
     assert scores.mean.mean == pytest.approx(scores.pair_curves.mean(), abs=1e-12)
-    assert scores.seeds_per_pair == 4 and "4 seed(s) per pair" in scores.warning
+    assert scores.seeds_per_pair == 4 and "4 seeds per pair" in scores.warning
+    assert scores.mean.mean == scores.raw["mean"]["mean"]  # fewer than CV_MIN_SEEDS: no control variates
 
 
 def test_stratified_resamples_stay_within_their_pair() -> None:
@@ -59,12 +60,14 @@ def test_stratified_resamples_stay_within_their_pair() -> None:
 
 def test_control_variate_with_an_identical_reference_removes_all_noise() -> None:
     rng = np.random.default_rng(1)
-    x = rng.normal(0.8, 0.1, size=(12, K, 3))
+    x = rng.normal(0.8, 0.1, size=(2 * CV_MIN_SEEDS + 1, K, 3))
     y = x[:, :, 1].copy()  # the agent plays reference 1 exactly
-    expected = np.tile([0.7, 0.8, 0.9], (12, 1))
-    adjusted, chosen = control_variates(y, x, expected, np.repeat([0, 1], 6))
-    assert np.all(chosen == 1)
-    np.testing.assert_allclose(adjusted, 0.8)
+    expected = np.tile([0.7, 0.8, 0.9], (len(x), 1))
+    pairs = np.repeat([0, 1, 2], [CV_MIN_SEEDS, CV_MIN_SEEDS, 1])
+    adjusted, chosen = control_variates(y, x, expected, pairs)
+    assert np.all(chosen[:-1] == 1) and np.all(chosen[-1] == -1)  # pair 2 has too few seeds to choose on
+    np.testing.assert_allclose(adjusted[:-1], 0.8)
+    np.testing.assert_array_equal(adjusted[-1], y[-1])
 
 
 def _synthetic_units(suite: Suite, pairs: list[int], seeds: int, rng: np.random.Generator) -> tuple[list[dict], float]:
@@ -96,7 +99,7 @@ def test_control_variate_scores_are_unbiased_monte_carlo(narrow: Suite) -> None:
     pairs = [0, 5, 9, 13]
     adjusted, raw, truth = [], [], None
     for _ in range(120):
-        units, truth = _synthetic_units(narrow, pairs, 4, rng)
+        units, truth = _synthetic_units(narrow, pairs, CV_MIN_SEEDS, rng)
         scores = score_units(narrow, units, 0.5, samples=20)
         adjusted.append(scores.mean.mean)
         raw.append(scores.raw["mean"]["mean"])
