@@ -53,3 +53,31 @@ def test_shipped_runs_state_the_env_steps_they_trained() -> None:
         readme = metrics.with_name("README.md").read_text()
         asked = int(re.search(r"mewa-bench train .*--steps (\d+)", readme).group(1))
         assert asked == trained or f"trained {trained:,} env steps" in readme, metrics.parent.name
+
+
+def test_train_set_changes_settings_under_an_algorithm_name_of_its_own(tmp_path: Path) -> None:
+    pytest.importorskip("torch")
+    from mewa_bench.protocol.run_info import read_run_info
+
+    result = CliRunner().invoke(app, ["train", "varibad", "--steps", "1", "--set", "latent=3", "--set",
+                                      "step_rewards=true", "--algorithm", "varibad-small", "--seed", "2", "--seed", "3",
+                                      "--out", str(tmp_path)], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    for seed in (2, 3):
+        folder = tmp_path / f"varibad-small-narrow-v1-seed{seed}"
+        info = read_run_info(folder)
+        assert (info.algorithm, info.seed, info.settings) == ("varibad-small", seed, {"latent": 3, "step_rewards": True})
+        readme = (folder / "README.md").read_text()
+        assert "'latent': 3" in readme and "'step_rewards': True" in readme  # what the run was trained with
+        command = re.search(r"mewa-bench train .*", readme).group(0)
+        assert "--algorithm varibad-small --set latent=3 --set step_rewards=true" in command
+
+
+@pytest.mark.parametrize("item, message", [
+    ("latent", "expected KEY=VALUE"), ("width=3", "not a Settings setting; known:"),
+    ("latent=0.5", "latent is a int"), ("step_rewards=yes", "expected true or false"),
+    ("seed=4", "set it with train's own option"), ("workers=1", "set it with train's own option"),
+])
+def test_train_set_names_what_is_wrong(item: str, message: str) -> None:
+    result = CliRunner().invoke(app, ["train", "varibad", "--set", item], env={"COLUMNS": "200"})
+    assert result.exit_code == 2 and message in " ".join(result.output.split()), result.output

@@ -85,6 +85,37 @@ def settings_with(cls: type[S], values: dict[str, Any], base: S | None = None, n
     return cls(**{**start, **values})
 
 
+RUN_OPTIONS = ("suite", "seed", "total_steps", "workers")  # settings that `train` sets with options of their own
+
+
+def setting_overrides(cls: type, items: Sequence[str]) -> dict[str, Any]:
+    """`learning_rate=3e-4`, `hidden=256`, ... (`train --set`) as values of the types of `cls`'s defaults;
+    ValueError naming the bad item."""
+    defaults = asdict(cls())
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = (part.strip() for part in item.partition("="))
+        if not sep or not key:
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE, e.g. learning_rate=3e-4")
+        if key in RUN_OPTIONS:
+            raise ValueError(f"--set {key}: set it with train's own option (--suite, --seed, --steps, --worker)")
+        if key not in defaults:
+            raise ValueError(f"--set {key}: not a {cls.__name__} setting; known: {', '.join(sorted(defaults))}")
+        default = defaults[key]
+        try:
+            if isinstance(default, bool):
+                if text.lower() not in ("true", "false"):
+                    raise ValueError("expected true or false")
+                out[key] = text.lower() == "true"
+            elif isinstance(default, (int, float, str)):
+                out[key] = type(default)(text)
+            else:
+                raise ValueError(f"a {type(default).__name__} setting cannot be set from the command line")
+        except ValueError as e:
+            raise ValueError(f"--set {item!r}: {key} is a {type(default).__name__} ({e})") from None
+    return out
+
+
 def whole_updates(settings: S) -> S:
     """`settings` with `total_steps` rounded up to whole updates (training runs whole updates only)."""
     per_update = settings.steps_per_update  # type: ignore[attr-defined]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
@@ -322,13 +323,14 @@ def generate(kind: str = typer.Argument(..., metavar="KIND", help="narrow, wide,
              out: Path = typer.Option(None, "--out", help="Where to write the suite (default: ./<name>.json; "
                                                            "with --check, nothing is written unless --out is given)."),
              check: bool = typer.Option(False, "--check", metavar="", help="Compare the result byte for byte with the shipped suite."),
+             validation: bool = typer.Option(False, "--validation", metavar="", help="Make the suite's validation "
+                                              "suite instead: its tasks with workers curated from held-out meta-train "
+                                              "draws, for tuning (<name>-validation)."),
              ray: bool = typer.Option(False, "--ray", metavar="", help="Design the candidate tasks as Ray tasks on a local Ray "
                                                            "instance (wide suites: one task per Ray task)."),
              ray_address: str = typer.Option(None, "--ray-address", help=RAY_ADDRESS_HELP)) -> None:
     """Regenerate a suite from the paper's task-design method (exact; reproduces the shipped file byte for byte)."""
-    from contextlib import nullcontext
-
-    from mewa_bench.design.generate import SPECS, generate_suite
+    from mewa_bench.design.generate import SPECS
     from mewa_bench.design.suites import shipped_path, suite_text
     from mewa_bench.files import write_atomic
 
@@ -336,30 +338,41 @@ def generate(kind: str = typer.Argument(..., metavar="KIND", help="narrow, wide,
         raise typer.BadParameter(f"expected one of {', '.join(SPECS)}", param_hint="KIND")
     address = _ray_option(ray, ray_address)
     start = time.perf_counter()
-    with console.status(f"generating {SPECS[kind].name}") as status:
-        if address is None:
-            context, map_tasks = nullcontext(), None
-        else:
-            from mewa_bench.protocol.ray_backend import ray_map, session
-
-            context = session(address)
-            map_tasks = lambda design, raws, kind_: ray_map(  # noqa: E731
-                design, raws, kind_, on_done=lambda c: status.update(f"{c.task.name}: designed and curated"))
-        with context:
-            content = _or_exit(lambda: generate_suite(kind, progress=lambda msg: status.update(msg), map_tasks=map_tasks))
+    name = SPECS[kind].name + ("-validation" if validation else "")
+    with console.status(f"generating {name}") as status:
+        content = _or_exit(lambda: _suite_content(kind, validation, address, status.update))
     text = suite_text(content)
     if out is not None or not check:
-        target = out or Path(f"{SPECS[kind].name}.json")
+        target = out or Path(f"{name}.json")
         write_atomic(target, text)
         console.print(f"wrote [bold]{target}[/bold] ({len(text):,} bytes) in {time.perf_counter() - start:.1f} s")
     else:
-        console.print(f"generated {SPECS[kind].name} ({len(text):,} bytes) in {time.perf_counter() - start:.1f} s")
+        console.print(f"generated {name} ({len(text):,} bytes) in {time.perf_counter() - start:.1f} s")
     if check:
-        shipped = shipped_path(SPECS[kind].name)
+        shipped = shipped_path(name)
         same = shipped.exists() and shipped.read_text() == text
         console.print(f"byte-identical to the shipped {shipped.name}: " + ("[green]yes[/green]" if same else "[red]NO[/red]"))
         if not same:
             raise typer.Exit(1)
+
+
+def _suite_content(kind: str, validation: bool, address: str | None, progress: Callable[[str], None]) -> dict:
+    """The content of suite `kind`, or of its validation suite, designed here or on Ray at `address`."""
+    from contextlib import nullcontext
+
+    from mewa_bench.design.generate import SPECS, generate_suite
+
+    if validation:
+        from mewa_bench.design.validation import validation_suite_content
+
+        return validation_suite_content(SPECS[kind].name)
+    if address is None:
+        return generate_suite(kind, progress=progress)
+    from mewa_bench.protocol.ray_backend import ray_map, session
+
+    with session(address):
+        return generate_suite(kind, progress=progress, map_tasks=lambda design, raws, kind_: ray_map(
+            design, raws, kind_, on_done=lambda c: progress(f"{c.task.name}: designed and curated")))
 
 
 @app.command()
@@ -375,6 +388,11 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
           resume: bool = typer.Option(False, "--resume", metavar="", help="Continue from the run folder's last checkpoint."),
           worker: list[str] = typer.Option([], "--worker", help="Train on this worker only, e.g. 0,1,1,1 "
                                                                 "(repeatable; default: the suite's meta-train distribution)."),
+          set_: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Change one of the algorithm's "
+                                         "settings, e.g. learning_rate=3e-4 (repeatable; recorded in run.json)."),
+          algorithm: str = typer.Option(None, "--algorithm", help="The algorithm's name on the boards and in the "
+                                                                 "run folder's name (default: ALGO; name runs with "
+                                                                 "other settings apart, e.g. rl2-lr3e-4)."),
           rerun: bool = typer.Option(False, "--rerun", metavar="", help="Also log the metrics as Rerun scalars to "
                                                            "<run folder>/metrics.rrd as they come (`mewa-bench view` "
                                                            "it; with --ray, written when the seed finishes)."),
@@ -384,24 +402,32 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     import shlex
 
     from mewa_bench.protocol.run_info import RunInfo, run_name, write_run_info
-    from mewa_bench.agents.training_io import UnknownAlgorithm, load_algorithm, whole_updates, workers_arg
+    from mewa_bench.agents.training_io import (UnknownAlgorithm, load_algorithm, setting_overrides, whole_updates,
+                                               workers_arg)
 
     try:
         module = load_algorithm(algo)
     except UnknownAlgorithm as e:
         raise typer.BadParameter(str(e), param_hint="ALGO") from None
+    try:
+        overrides = setting_overrides(module.Settings, set_)
+    except ValueError as e:
+        raise typer.BadParameter(str(e), param_hint="--set") from None
+    algorithm = algorithm or algo
     address = _ray_option(ray, ray_address)
     jobs = []
     for s in dict.fromkeys(seed):  # each seed once, in the order given
-        name = run_name(algo, suite, s)  # never seed<s> alone: two algorithms' runs must not collide
+        name = run_name(algorithm, suite, s)  # never seed<s> alone: two algorithms' runs must not collide
         folder = (out / name if len(seed) > 1 else out) if out else Path("runs") / name
         try:
-            settings = whole_updates(module.settings_from({"suite": suite, "seed": s, "total_steps": steps,
+            settings = whole_updates(module.settings_from({**overrides, "suite": suite, "seed": s, "total_steps": steps,
                                                            "workers": workers_arg(worker)}))
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--worker") from None
-        command = " ".join(["mewa-bench train", algo, "--suite", shlex.quote(suite), "--seed", str(s), "--steps",
-                            str(settings.total_steps), "--out", shlex.quote(str(folder)), *(f"--worker {w}" for w in worker)])
+        command = " ".join(["mewa-bench train", algo, *([f"--algorithm {shlex.quote(algorithm)}"] * (algorithm != algo)),
+                            *(f"--set {shlex.quote(item)}" for item in set_), "--suite", shlex.quote(suite),
+                            "--seed", str(s), "--steps", str(settings.total_steps), "--out", shlex.quote(str(folder)),
+                            *(f"--worker {w}" for w in worker)])
         jobs.append((settings, folder.resolve(), resume, command))
     console.print(_steps_text(steps, jobs[0][0]))
     if address is None:
@@ -441,8 +467,8 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     from mewa_bench.reports.training_curves import plot_training_curves
 
     for (settings, folder, _, _), paths in zip(jobs, written):
-        paths.append(write_run_info(folder, RunInfo(algorithm=algo, seed=settings.seed, suite=suite,
-                                                    steps=settings.total_steps)))
+        paths.append(write_run_info(folder, RunInfo(algorithm=algorithm, seed=settings.seed, suite=suite,
+                                                    steps=settings.total_steps, settings=overrides)))
         curve = plot_training_curves({f"seed {settings.seed}": folder / module.METRICS}, folder / "training_curve.png",
                                      f"{algo} on {suite}, seed {settings.seed}")
         for path in [*paths, curve]:

@@ -181,27 +181,38 @@ def curate_task(task: Task, task_index: int, spec: SuiteSpec, progress: Progress
     cur = curate(values, spec.cap, spec.min_best_return, spec.phase2, candidates, spec.min_distance)
     chosen = candidates[list(cur.selected)]
     progress(f"{task.name}: {len(chosen)} curated workers; baselines and known-worker optimum")
-    v = np.round(values[list(cur.selected)], DECIMALS)
-    baselines = np.round(exact.expected_returns(task, [RANDOM, RANDOM_TASK_SPECIFIC], chosen), DECIMALS)
-    best_known = np.round(optimum.known_worker_optimum(task, chosen), DECIMALS)
+    pairs, best_fixed, ratio = pair_records(task, task_index, chosen, values[list(cur.selected)], spec.families)
+    for pair, phase in zip(pairs, cur.phase):
+        pair["phase"] = phase
+    info = {"candidates": int(len(candidates)), "usable_candidates": cur.kept_candidates,
+            "phase2_policy": names[cur.phase2_policy], "best_fixed_policy": names[best_fixed],
+            "best_fixed_mean_ratio": round_floats(ratio),
+            "workers": len(chosen), "phase1_workers": cur.phase.count(1)}
+    return info, pairs
+
+
+def pair_records(task: Task, task_index: int, workers: np.ndarray, values: np.ndarray,
+                 families: bool) -> tuple[list[dict], int, float]:
+    """A suite's pair entries for `workers` of one task, given the t-optimal policies' exact returns `values`
+    [W, P]: every reference value, exact. Also the best fixed policy's index and its mean ratio to the best."""
+    names = policy_names(task.N, baselines=False)
+    v = np.round(values, DECIMALS)
+    baselines = np.round(exact.expected_returns(task, [RANDOM, RANDOM_TASK_SPECIFIC], workers), DECIMALS)
+    best_known = np.round(optimum.known_worker_optimum(task, workers), DECIMALS)
     ratio = ratios_to_best(v)
     best_fixed = int(np.argmax(np.round(ratio.mean(axis=0), DECIMALS)))
     pairs = []
-    for i, w in enumerate(chosen):
+    for i, w in enumerate(workers):
         pairs.append({
-            "task": task_index, "worker": round_floats(w), "phase": cur.phase[i],
+            "task": task_index, "worker": round_floats(w),
             "toptimal": round_floats(v[i]), "best_policy": names[int(np.argmax(v[i]))],
             "baselines": {"random": round_floats(baselines[0, i]), "random_task_specific": round_floats(baselines[1, i]),
                           "max_expected": round_floats(v[i].max())},
             "best_fixed": round_floats(v[i, best_fixed]), "known_worker_optimum": round_floats(best_known[i]),
         })
-        if spec.families:
+        if families:
             pairs[-1]["family"] = "+".join(family_names(task, w))
-    info = {"candidates": int(len(candidates)), "usable_candidates": cur.kept_candidates,
-            "phase2_policy": names[cur.phase2_policy], "best_fixed_policy": names[best_fixed],
-            "best_fixed_mean_ratio": round_floats(ratio[:, best_fixed].mean()),
-            "workers": len(chosen), "phase1_workers": cur.phase.count(1)}
-    return info, pairs
+    return pairs, best_fixed, float(ratio[:, best_fixed].mean())
 
 
 @dataclass(frozen=True)

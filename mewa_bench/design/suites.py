@@ -20,6 +20,7 @@ SUITE_FORMAT_VERSION = 1
 SHIPPED_SUITES = ("narrow-v1", "wide-v1")  # the paper's design: ranked on the leaderboards
 V2_SUITES = ("narrow-v2", "wide-v2")  # + the overloaded worker family (docs/suites.md)
 ALL_SUITES = SHIPPED_SUITES + V2_SUITES
+VALIDATION_SUITES = tuple(f"{name}-validation" for name in ALL_SUITES)  # for tuning, never ranked (design.validation)
 _REQUIRED = ("format_version", "name", "suite", "version", "env_id", "generator", "tasks", "pairs", "summary")
 
 
@@ -85,9 +86,10 @@ def resolve(name_or_path: str | Path) -> Path:
     p = Path(name_or_path)
     if p.suffix == ".json" or p.exists():
         return p
-    if str(name_or_path) in ALL_SUITES:
+    if str(name_or_path) in ALL_SUITES + VALIDATION_SUITES:
         return shipped_path(str(name_or_path))
-    raise SuiteError(f"unknown suite {str(name_or_path)!r}: expected one of {', '.join(ALL_SUITES)} or a .json path")
+    raise SuiteError(f"unknown suite {str(name_or_path)!r}: expected one of {', '.join(ALL_SUITES)}, a validation "
+                     f"suite (<suite>-validation) or a .json path")
 
 
 def parse_suite(content: Any, where: str) -> Suite:

@@ -19,7 +19,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from mewa_bench.design.suites import ALL_SUITES, Suite, SuiteError, load_suite
+from mewa_bench.design.suites import ALL_SUITES, VALIDATION_SUITES, Suite, SuiteError, load_suite
 from mewa_bench.game.normalise import normalised_return
 from mewa_bench.protocol.results import PROTOCOL_VERSION, ResultsError, read_results
 from mewa_bench.protocol.config import EPISODES_PER_PAIR, default_seeds, env_seed
@@ -76,6 +76,9 @@ class SuiteCache:
 
     def get(self, name: Any) -> Suite:
         """The shipped suite `name`; only shipped names, never a path taken from a results file."""
+        if isinstance(name, str) and name in VALIDATION_SUITES:
+            raise InvalidResults(f"suite {name!r} is a validation suite (held-out meta-train workers, for tuning): "
+                                 f"its runs are never ranked")
         if not isinstance(name, str) or name not in ALL_SUITES:
             raise InvalidResults(f"suite {name!r} is not a shipped suite ({', '.join(ALL_SUITES)})")
         if name not in self._suites:

@@ -8,14 +8,14 @@ it a folder is a one-run algorithm named after the agent (the folder's name for 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from mewa_bench.files import write_atomic
 
 RUN_FILE = "run.json"
-_FIELDS = {"algorithm": str, "seed": int, "suite": str, "steps": int, "notes": str}
+_FIELDS = {"algorithm": str, "seed": int, "suite": str, "steps": int, "notes": str, "settings": dict}
 
 
 class RunInfoError(ValueError):
@@ -24,19 +24,21 @@ class RunInfoError(ValueError):
 
 @dataclass(frozen=True)
 class RunInfo:
-    """A training run: its algorithm, training seed, training suite, budget in env steps and free notes."""
+    """A training run: its algorithm, training seed, training suite, budget in env steps, free notes and the
+    settings it changed from the algorithm's defaults (`train --set`)."""
 
     algorithm: str
     seed: int | None = None
     suite: str | None = None
     steps: int | None = None
     notes: str = ""
+    settings: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form (absent fields left out)."""
         out = {"algorithm": self.algorithm, "seed": self.seed, "suite": self.suite, "steps": self.steps,
-               "notes": self.notes}
-        return {k: v for k, v in out.items() if v not in (None, "")}
+               "notes": self.notes, "settings": self.settings}
+        return {k: v for k, v in out.items() if v not in (None, "", {})}
 
 
 def read_run_info(folder: Path, default_name: str | None = None) -> RunInfo:
@@ -61,7 +63,8 @@ def parse_run_info(data: Any, where: str) -> RunInfo:
     for key, kind in _FIELDS.items():
         value = data.get(key)
         if value is not None and (not isinstance(value, kind) or isinstance(value, bool)):
-            raise RunInfoError(f"{where}: `{key}` must be a{'n integer' if kind is int else ' string'}, got {value!r}")
+            what = {int: "n integer", str: " string", dict: "n object"}[kind]
+            raise RunInfoError(f"{where}: `{key}` must be a{what}, got {value!r}")
     algorithm = data.get("algorithm")
     if not isinstance(algorithm, str) or not algorithm.strip():
         raise RunInfoError(f"{where}: `algorithm` must be a non-empty string")
@@ -69,7 +72,7 @@ def parse_run_info(data: Any, where: str) -> RunInfo:
     if steps is not None and steps < 1:
         raise RunInfoError(f"{where}: `steps` must be a positive number of env steps, got {steps}")
     return RunInfo(algorithm=algorithm.strip(), seed=data.get("seed"), suite=data.get("suite"), steps=steps,
-                   notes=data.get("notes") or "")
+                   notes=data.get("notes") or "", settings=data.get("settings") or {})
 
 
 def write_run_info(folder: Path, info: RunInfo) -> Path:
