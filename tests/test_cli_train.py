@@ -18,7 +18,9 @@ from mewa_bench.cli import app
 @pytest.mark.parametrize("asked", [1, 100_000, 4_000_000])
 def test_steps_round_up_to_whole_updates(algo: str, asked: int) -> None:
     settings = load_algorithm(algo).settings_from({"total_steps": asked})
-    per = settings.num_envs * settings.num_steps
+    per = settings.steps_per_update
+    if algo != "dpt":  # online: env steps of every env per update; dpt: meta-episodes per update
+        assert per == settings.num_envs * settings.num_steps
     rounded = whole_updates(settings)
     assert rounded.total_steps == math.ceil(asked / per) * per
     assert rounded.total_steps >= asked and rounded.total_steps - asked < per

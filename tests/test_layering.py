@@ -14,6 +14,9 @@ EDGE = 5
 ALLOWED = {
     # SAPIEN mode: camera images are part of the observation, so the env builds the scene (lazily, only in that mode).
     ("mewa_bench.envs.mewa_env", "mewa_bench.render.scene"),
+    # The offline baseline learns from a training dataset: reading one, with its checks (no test worker, no protocol
+    # key), is the datasets package's (lazily, when training starts).
+    ("mewa_bench.agents.dpt", "mewa_bench.datasets.training_data"),
 }
 
 

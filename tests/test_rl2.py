@@ -88,14 +88,15 @@ def test_a_checkpoint_plays_under_the_evaluation_protocol(tmp_path: Path) -> Non
     assert [u["returns"] for u in again["units"]] == [u["returns"] for u in results["units"]]
 
 
-def play_pairs(checkpoint: Path, task, workers: list[tuple[float, ...]], seeds: int) -> np.ndarray:
+def play_pairs(checkpoint: Path, task, workers: list[tuple[float, ...]], seeds: int, agent=None) -> np.ndarray:
     """Normalised returns [worker, seed, episode] of the checkpoint under the protocol's loop (10 episodes
-    per pair, the agent reset per pair, luck keys fixed by worker, seed and episode)."""
+    per pair, the agent reset per pair, luck keys fixed by worker, seed and episode); `agent`: the one-lane
+    agent class (default RL2Agent)."""
     from mewa_bench.agents.rl2 import RL2Agent
     from mewa_bench.envs import MewaEnv
     from mewa_bench.protocol.agent import Transition
 
-    agent, env = RL2Agent(checkpoint, seed=0), MewaEnv(task=task)
+    agent, env = (agent or RL2Agent)(checkpoint, seed=0), MewaEnv(task=task)
     out = np.zeros((len(workers), seeds, 10))
     for i, worker in enumerate(workers):
         for seed in range(seeds):

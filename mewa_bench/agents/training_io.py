@@ -46,6 +46,7 @@ ALGORITHMS = {  # name -> module (one file per algorithm)
     "varibad": "mewa_bench.agents.varibad",
     "pearl": "mewa_bench.agents.pearl",
     "maml": "mewa_bench.agents.maml",
+    "dpt": "mewa_bench.agents.dpt",  # offline: learns from a training dataset (train --dataset)
 }
 
 S = TypeVar("S")

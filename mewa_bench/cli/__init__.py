@@ -378,11 +378,13 @@ def _suite_content(kind: str, validation: bool, address: str | None, progress: C
 @app.command()
 def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pearl or maml "
                                                               "(mewa_bench.agents.training_io.ALGORITHMS)."),
-          suite: str = typer.Option("narrow-v1", help="Suite whose tasks and meta-train workers it trains on."),
+          suite: str = typer.Option(None, help="Suite whose tasks and meta-train workers it trains on (default: "
+                                               "narrow-v1; an offline run's is its dataset's)."),
           seed: list[int] = typer.Option([1], "--seed", help="Training seed (repeatable: one run per seed; "
                                                            "runs are deterministic given it)."),
-          steps: int = typer.Option(4_000_000, min=1, help="Env steps to train for, rounded up to whole updates "
-                                                           "(the exact number is printed before training starts)."),
+          steps: int = typer.Option(None, min=1, help="Env steps to train for (default 4,000,000; dpt: "
+                                                      "meta-episodes, default 40,000), rounded up to whole updates "
+                                                      "(the exact number is printed before training starts)."),
           out: Path = typer.Option(None, help="Run folder (default: runs/<algo>-<suite>-seed<seed>; with several "
                                               "seeds, <out>/<algo>-<suite>-seed<seed>)."),
           resume: bool = typer.Option(False, "--resume", metavar="", help="Continue from the run folder's last checkpoint."),
@@ -390,6 +392,10 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
                                                                 "(repeatable; default: the suite's meta-train distribution)."),
           set_: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Change one of the algorithm's "
                                          "settings, e.g. learning_rate=3e-4 (repeatable; recorded in run.json)."),
+          dataset: Path = typer.Option(None, "--dataset", help="Offline algorithms (dpt): the training dataset "
+                                                               "folder they learn from (`mewa-bench datasets build "
+                                                               "NAME` writes mewa-datasets/NAME); its suite is the "
+                                                               "run's."),
           algorithm: str = typer.Option(None, "--algorithm", help="The algorithm's name on the boards and in the "
                                                                  "run folder's name (default: ALGO; name runs with "
                                                                  "other settings apart, e.g. rl2-lr3e-4)."),
@@ -414,22 +420,37 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     except ValueError as e:
         raise typer.BadParameter(str(e), param_hint="--set") from None
     algorithm = algorithm or algo
+    if steps is None:
+        steps = module.Settings().total_steps if hasattr(module, "STEP_UNIT") else 4_000_000
+    offline = {} if dataset is None else {"dataset": str(dataset)}
+    offline_algorithm = "dataset" in module.Settings.__dataclass_fields__
+    if dataset is not None and not offline_algorithm:
+        raise typer.BadParameter(f"{algo} learns online: only offline algorithms (dpt) take a dataset",
+                                 param_hint="--dataset")
+    if dataset is None and offline_algorithm:
+        raise typer.BadParameter(f"{algo.upper()} learns from a training dataset: give --dataset (a folder that "
+                                 f"`mewa-bench datasets build NAME` wrote)", param_hint="--dataset")
     address = _ray_option(ray, ray_address)
     jobs = []
     for s in dict.fromkeys(seed):  # each seed once, in the order given
-        name = run_name(algorithm, suite, s)  # never seed<s> alone: two algorithms' runs must not collide
-        folder = (out / name if len(seed) > 1 else out) if out else Path("runs") / name
         try:
-            settings = whole_updates(module.settings_from({**overrides, "suite": suite, "seed": s, "total_steps": steps,
+            settings = whole_updates(module.settings_from({**overrides, **offline, "suite": suite or "narrow-v1",
+                                                           "seed": s, "total_steps": steps,
                                                            "workers": workers_arg(worker)}))
         except ValueError as e:
-            raise typer.BadParameter(str(e), param_hint="--worker") from None
+            raise typer.BadParameter(str(e), param_hint="--dataset" if offline else "--worker") from None
+        if suite is not None and settings.suite != suite:
+            raise typer.BadParameter(f"the dataset is of {settings.suite}, not {suite}", param_hint="--suite")
+        name = run_name(algorithm, settings.suite, s)  # never seed<s> alone: two algorithms' runs must not collide
+        folder = (out / name if len(seed) > 1 else out) if out else Path("runs") / name
         command = " ".join(["mewa-bench train", algo, *([f"--algorithm {shlex.quote(algorithm)}"] * (algorithm != algo)),
-                            *(f"--set {shlex.quote(item)}" for item in set_), "--suite", shlex.quote(suite),
+                            *(f"--set {shlex.quote(item)}" for item in set_), "--suite", shlex.quote(settings.suite),
                             "--seed", str(s), "--steps", str(settings.total_steps), "--out", shlex.quote(str(folder)),
-                            *(f"--worker {w}" for w in worker)])
+                            *(f"--worker {w}" for w in worker),
+                            *([f"--dataset {shlex.quote(str(dataset))}"] if dataset is not None else [])])
         jobs.append((settings, folder.resolve(), resume, command))
-    console.print(_steps_text(steps, jobs[0][0]))
+    suite = jobs[0][0].suite
+    console.print(_steps_text(steps, jobs[0][0], getattr(module, "STEP_UNIT", "env steps")))
     if address is None:
         console.print(TRAIN_PROGRESS_TEXT)
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -453,8 +474,9 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
 
                 def show(done: int, total: int, row: dict, task=task, s=settings.seed, scalars=scalars) -> None:
                     bar.update(task, completed=done, total=total, description=(
-                        f"{algo} seed {s} meta-train: {row['episode_1_normalised_return']:.2f} -> "
-                        f"{row['episode_10_normalised_return']:.2f}"))
+                        f"{algo} seed {s}: loss {row['loss']:.3f}, optimal-action accuracy {row['accuracy']:.2f}"
+                        if "accuracy" in row else f"{algo} seed {s} meta-train: "
+                        f"{row['episode_1_normalised_return']:.2f} -> {row['episode_10_normalised_return']:.2f}"))
                     if scalars is not None:
                         scalars.log(row)
 
@@ -479,12 +501,13 @@ TRAIN_PROGRESS_TEXT = ("progress: meta-train normalised return, episode 1 -> 10 
                        "scores the suite's curated test workers, which training never meets; see the README)")
 
 
-def _steps_text(asked: int, settings) -> str:
-    """What a run will train: the exact env steps and updates, and whether --steps was rounded up."""
+def _steps_text(asked: int, settings, unit: str = "env steps") -> str:
+    """What a run will train: the exact env steps (or the offline algorithm's unit) and updates, and whether
+    --steps was rounded up."""
     per, total = settings.steps_per_update, settings.total_steps
     rounded = f"; --steps {asked:,} rounded up to whole updates" if total != asked else ""
     updates = total // per
-    return f"training {total:,} env steps per run ({updates:,} update{'s' * (updates != 1)} of {per:,}{rounded})"
+    return f"training {total:,} {unit} per run ({updates:,} update{'s' * (updates != 1)} of {per:,}{rounded})"
 
 
 @suites_app.command("list")
