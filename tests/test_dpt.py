@@ -129,7 +129,9 @@ def test_train_dpt_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) ->
     result = CliRunner().invoke(app, ["train", "dpt", "--dataset", str(data), "--steps", "20", "--out", str(out)],
                                 env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
-    assert "training 32 meta-episodes per run (2 updates of 16; --steps 20 rounded up" in " ".join(result.output.split())
+    text = " ".join(result.output.split())
+    assert "training 32 meta-episodes per run (2 updates of 16; --steps 20 rounded up" in text
+    assert "predictions of the dataset's optimal actions (not a score" in text and "episode 1 -> 10" not in text
     info = json.loads((out / "run.json").read_text())
     assert (info["algorithm"], info["suite"], info["steps"]) == ("dpt", "narrow-v2", 32)
     assert f"--dataset {data}" in (out / "README.md").read_text()

@@ -452,7 +452,7 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     suite = jobs[0][0].suite
     console.print(_steps_text(steps, jobs[0][0], getattr(module, "STEP_UNIT", "env steps")))
     if address is None:
-        console.print(TRAIN_PROGRESS_TEXT)
+        console.print(OFFLINE_PROGRESS_TEXT if offline_algorithm else TRAIN_PROGRESS_TEXT)
     with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console) as bar:
         if address is not None:  # one seed per Ray task; progress as seeds finish
@@ -497,6 +497,8 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
             console.print(f"wrote {path}")
 
 
+OFFLINE_PROGRESS_TEXT = ("progress: the loss and accuracy of its predictions of the dataset's optimal actions (not a "
+                         "score: `evaluate` plays the suite's curated test workers, which the dataset never holds)")
 TRAIN_PROGRESS_TEXT = ("progress: meta-train normalised return, episode 1 -> 10 of a pair (not a score: `evaluate` "
                        "scores the suite's curated test workers, which training never meets; see the README)")
 
