@@ -57,23 +57,28 @@ def test_playing_with_the_kv_cache_gives_the_full_passs_logits() -> None:
     assert not cache[0][0][1].any()
 
 
-def test_the_ring_buffer_keeps_the_last_context_tokens() -> None:
-    """With one layer a step sees exactly the last `context` tokens (with more, each layer attends to the last
-    `context` tokens' cached states, which saw further back when they were made)."""
+def test_the_ring_buffer_plays_what_the_sliding_window_trains() -> None:
+    """Past `context` tokens a lane's cache keeps the last ones per layer: the full pass with each token attending to
+    its last `context` tokens (as in training) gives the same logits at every step."""
     import torch
 
-    settings = dpt.Settings(context=8, layers=1)
+    settings = dpt.Settings(context=8, layers=2)
     torch.manual_seed(1)
     model = dpt.make_model(settings).double().eval()
-    tokens = torch.as_tensor(np.random.default_rng(1).normal(size=(1, 20, dpt.TOKEN)))
-    episode = torch.zeros(1, 20, dtype=torch.long)
+    tokens = torch.as_tensor(np.random.default_rng(1).normal(size=(1, 30, dpt.TOKEN)))
+    episode = torch.as_tensor(np.repeat(np.arange(3), 10))[None]
     with torch.no_grad():
         shape = (1, settings.heads, settings.context, settings.d_model // settings.heads)
         cache = [(torch.zeros(shape, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64))
                  for _ in range(settings.layers)]
-        last = [model.step(tokens[:, t], episode[:, t], cache, torch.tensor([0]), torch.tensor([t])) for t in range(20)]
-        window = model(tokens[:, 12:], episode[:, 12:], torch.ones(1, 8, dtype=torch.bool))[:, -1]
-    torch.testing.assert_close(last[-1], window, rtol=0, atol=1e-12)  # step 19 saw tokens 12..19, in any order
+        stepped = torch.stack([model.step(tokens[:, t], episode[:, t], cache, torch.tensor([0]), torch.tensor([t]))
+                               for t in range(30)], dim=1)
+        full = model(tokens, episode, torch.ones(1, 30, dtype=torch.bool))
+        unlimited = dpt.make_model(dpt.Settings(context=64, layers=2)).double().eval()
+        unlimited.load_state_dict(model.state_dict())
+        longer = unlimited(tokens, episode, torch.ones(1, 30, dtype=torch.bool))
+    torch.testing.assert_close(stepped, full, rtol=0, atol=1e-12)
+    assert (stepped[0, 8:] - longer[0, 8:]).abs().max() > 1e-6  # the window matters past `context` tokens
 
 
 def two_worker_sequences(meta_episodes: int, seed: int) -> dpt.Sequences:

@@ -367,7 +367,7 @@ def test_the_wall_clock_limit_stops_a_run_mid_call(sandbox, tmp_path):
     assert wait_until_gone(tmp_path / "scratch") == []
 
 
-@pytest.mark.parametrize("mode", ["write", "unlinked"])  # unlinked: files removed while the agent keeps them open
+@pytest.mark.parametrize("mode", ["write", "unlinked", "mapped"])  # removed while kept open, or mapped and closed
 def test_the_scratch_directory_is_capped_as_a_whole(sandbox, tmp_path, mode):
     with pytest.raises(SandboxViolation) as caught:  # each file is within the file-size limit, together they are not
         run(tmp_path, "file_agent.py", agent_args={"path": "big.bin", "mode": mode, "size": str(3 << 20),

@@ -8,7 +8,8 @@ training loop, checkpoints, and `DPTVectorAgent`, which plays a checkpoint under
   state and step (`optimal_action`, from `design.optimum`): the label DPT learns to predict. The
   frames come from meta-train workers only (the dataset's own checks run when it is opened), so
   the test pairs are never seen.
-- Sequences: one per meta-episode (a meta-train worker's 10 episodes, in play order); token t is
+- Sequences: one per 10-episode block of a meta-episode (a meta-train worker's episodes, in play
+  order; a learning history's 50 episodes are 5 blocks, as the protocol plays 10); token t is
   frame t's observation and the whole previous transition (its observation, action one-hot and
   reward: with the next observation, which is frame t's own within an episode, a token holds what
   the worker did), the new-episode flag, plus an embedding of the episode's index. The model
@@ -16,10 +17,12 @@ training loop, checkpoints, and `DPTVectorAgent`, which plays a checkpoint under
   context, the worker it must infer.
 - Model: a pre-norm causal transformer without position embeddings: the context is a set of
   transitions, as in the paper.
-- Training: cross-entropy against the optimal labels on every frame of a window of `context`
-  tokens at a random place in each of `batch` meta-episodes, AdamW; `total_steps` counts
-  meta-episodes (windows) seen. Deterministic for a given seed on one machine (torch's CPU
-  kernels, one thread).
+- Training: cross-entropy against the optimal labels on every frame of a span of up to
+  2 x `context` tokens of each of `batch` meta-episodes, ending at a frame drawn uniformly, with
+  the attention of every token limited to its last `context` tokens, as when playing; AdamW;
+  `total_steps` counts spans (meta-episodes) seen. Deterministic for a given seed on one machine
+  (torch's CPU kernels, one thread); a resumed run draws its spans afresh from the seed and its
+  update, so it is not the bytes of an uninterrupted one.
 - Playing: each lane keeps the keys and values of its last `context` tokens per layer (a ring
   buffer: without position embeddings their order does not matter; as in any sliding-window
   cache, the states of a deeper layer were made when those tokens saw their own last `context`),
@@ -82,8 +85,8 @@ class Settings:
 
 @dataclass(frozen=True)
 class Sequences:
-    """Training sequences: tokens float32 [F, 24], episode index and label int64 [F], in meta-episode order;
-    `starts` int64 [M + 1]: meta-episode m is frames starts[m]:starts[m + 1]."""
+    """Training sequences: tokens float32 [F, TOKEN], episode index and label int64 [F], in play order;
+    `starts` int64 [M + 1]: sequence m (a 10-episode block of a meta-episode) is frames starts[m]:starts[m + 1]."""
 
     tokens: np.ndarray
     episode: np.ndarray
@@ -132,14 +135,14 @@ def dataset_sequences(root: Path | str, suite: str | None = None) -> Sequences:
     if suite is not None and meta["suite"]["name"] != suite:
         raise ValueError(f"{root}: a dataset of {meta['suite']['name']}, not of {suite}")
     columns = ["index", "observation.state", "action", "next.reward", "optimal_action", "meta_episode_index",
-               "episode_in_meta_episode"]
+               "block_index", "episode_in_block"]
     tables = [pq.read_table(path, columns=columns) for path in sorted((Path(root) / "data").rglob("*.parquet"))]
     flat = {c: np.concatenate([_column(t, c) for t in tables]) for c in columns}
     order = np.argsort(flat["index"], kind="stable")
     obs = flat["observation.state"].reshape(len(order), -1)[order]
+    block = flat["meta_episode_index"][order] * (int(flat["block_index"].max()) + 1) + flat["block_index"][order]
     return sequences_from_frames(obs, flat["action"][order], flat["next.reward"][order],
-                                 flat["optimal_action"][order], flat["meta_episode_index"][order],
-                                 flat["episode_in_meta_episode"][order])
+                                 flat["optimal_action"][order], block, flat["episode_in_block"][order])
 
 
 def _column(table: Any, name: str) -> np.ndarray:
@@ -189,11 +192,12 @@ def make_model(settings: Settings) -> Any:
             return self.embed(tokens) + self.episode(episode)
 
         def forward(self, tokens: Any, episode: Any, valid: Any) -> Any:
-            """Logits [B, L, 4] for whole sequences (tokens [B, L, 24], episode [B, L], valid [B, L] bool)."""
+            """Logits [B, L, 4] for whole sequences (tokens [B, L, TOKEN], episode [B, L], valid [B, L] bool),
+            each token attending to itself and the `context` - 1 tokens before it (as a lane's cache holds)."""
             x = self.inputs(tokens, episode)
             length = x.shape[1]
-            causal = torch.ones(length, length, dtype=torch.bool).tril()
-            mask = causal[None, None] & valid[:, None, None, :]
+            window = torch.ones(length, length, dtype=torch.bool).tril().triu(-(settings.context - 1))
+            mask = window[None, None] & valid[:, None, None, :]
             for block in self.blocks:
                 x = block.attend(x, *block.split(x), mask)
             return self.head(self.norm(x))
@@ -223,11 +227,6 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Sequences |
 
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
-    if data is None:
-        if not settings.dataset:
-            raise ValueError("DPT learns from a training dataset: give --dataset (a folder that `mewa-bench datasets "
-                             "build NAME` wrote)")
-        data = dataset_sequences(settings.dataset, settings.suite)
     torch.manual_seed(settings.seed)
     model = make_model(settings)
     optimizer = torch.optim.AdamW(model.parameters(), lr=settings.learning_rate, weight_decay=settings.weight_decay)
@@ -239,15 +238,20 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Sequences |
         optimizer.load_state_dict(state["optimizer"])
         start_update = state["update"]
         keep_metrics_until(out / METRICS, start_update)
+    if data is None:  # the run's own dataset (a resumed run's, from its checkpoint)
+        if not settings.dataset:
+            raise ValueError("DPT learns from a training dataset: give --dataset (a folder that `mewa-bench datasets "
+                             "build NAME` wrote)")
+        data = dataset_sequences(settings.dataset, settings.suite)
     updates = settings.total_steps // settings.steps_per_update
     rng = np.random.default_rng([settings.seed, start_update])
     lengths = np.diff(data.starts)
     for update in range(start_update, updates):
         began = time.perf_counter()
         chosen = rng.choice(len(data), size=settings.batch, replace=len(data) < settings.batch)
-        size = np.minimum(lengths[chosen], settings.context)
-        first = data.starts[chosen] + rng.integers(0, lengths[chosen] - size + 1)
-        tokens, episode, label, valid = _batch(torch, data, first, size)
+        end = rng.integers(0, lengths[chosen])  # the span's last frame, uniform over the sequence's frames
+        begin = np.maximum(0, end + 1 - 2 * settings.context)
+        tokens, episode, label, valid = _batch(torch, data, data.starts[chosen] + begin, end + 1 - begin)
         logits = model(tokens, episode, valid)
         loss = torch.nn.functional.cross_entropy(logits[valid], label[valid])
         optimizer.zero_grad()
@@ -268,7 +272,7 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Sequences |
 
 
 def _batch(torch: Any, data: Sequences, first: np.ndarray, size: np.ndarray) -> tuple[Any, Any, Any, Any]:
-    """Padded tensors of the windows frames first[b]:first[b] + size[b]: tokens [B, L, 24], episode, label and
+    """Padded tensors of the spans of frames first[b]:first[b] + size[b]: tokens [B, L, TOKEN], episode, label and
     valid [B, L]."""
     shape = (len(first), int(size.max()))
     tokens = np.zeros(shape + (TOKEN,), dtype=np.float32)

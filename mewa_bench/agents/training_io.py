@@ -86,7 +86,7 @@ def settings_with(cls: type[S], values: dict[str, Any], base: S | None = None, n
     return cls(**{**start, **values})
 
 
-RUN_OPTIONS = ("suite", "seed", "total_steps", "workers")  # settings that `train` sets with options of their own
+RUN_OPTIONS = ("suite", "seed", "total_steps", "workers", "dataset")  # set by `train` with options of their own
 
 
 def setting_overrides(cls: type, items: Sequence[str]) -> dict[str, Any]:
@@ -99,7 +99,8 @@ def setting_overrides(cls: type, items: Sequence[str]) -> dict[str, Any]:
         if not sep or not key:
             raise ValueError(f"--set {item!r}: expected KEY=VALUE, e.g. learning_rate=3e-4")
         if key in RUN_OPTIONS:
-            raise ValueError(f"--set {key}: set it with train's own option (--suite, --seed, --steps, --worker)")
+            raise ValueError(f"--set {key}: set it with train's own option (--suite, --seed, --steps, --worker, "
+                             f"--dataset)")
         if key not in defaults:
             raise ValueError(f"--set {key}: not a {cls.__name__} setting; known: {', '.join(sorted(defaults))}")
         default = defaults[key]

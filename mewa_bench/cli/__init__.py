@@ -376,7 +376,7 @@ def _suite_content(kind: str, validation: bool, address: str | None, progress: C
 
 
 @app.command()
-def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pearl or maml "
+def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pearl, maml or dpt (offline) "
                                                               "(mewa_bench.agents.training_io.ALGORITHMS)."),
           suite: str = typer.Option(None, help="Suite whose tasks and meta-train workers it trains on (default: "
                                                "narrow-v1; an offline run's is its dataset's)."),
@@ -422,7 +422,9 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     algorithm = algorithm or algo
     if steps is None:
         steps = module.Settings().total_steps if hasattr(module, "STEP_UNIT") else 4_000_000
-    offline = {} if dataset is None else {"dataset": str(dataset)}
+    # as given (the README's command), absolute for Ray workers whose working directory may differ
+    offline = {} if dataset is None else {"dataset": str(dataset if ray_address is None and not ray else
+                                                         dataset.resolve())}
     offline_algorithm = "dataset" in module.Settings.__dataclass_fields__
     if dataset is not None and not offline_algorithm:
         raise typer.BadParameter(f"{algo} learns online: only offline algorithms (dpt) take a dataset",
@@ -438,7 +440,7 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
                                                            "seed": s, "total_steps": steps,
                                                            "workers": workers_arg(worker)}))
         except ValueError as e:
-            raise typer.BadParameter(str(e), param_hint="--dataset" if offline else "--worker") from None
+            raise typer.BadParameter(str(e), param_hint="--worker" if worker or not offline else "--dataset") from None
         if suite is not None and settings.suite != suite:
             raise typer.BadParameter(f"the dataset is of {settings.suite}, not {suite}", param_hint="--suite")
         name = run_name(algorithm, settings.suite, s)  # never seed<s> alone: two algorithms' runs must not collide
@@ -490,7 +492,7 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
 
     for (settings, folder, _, _), paths in zip(jobs, written):
         paths.append(write_run_info(folder, RunInfo(algorithm=algorithm, seed=settings.seed, suite=suite,
-                                                    steps=settings.total_steps, settings=overrides)))
+                                                    steps=settings.total_steps, settings={**overrides, **offline})))
         curve = plot_training_curves({f"seed {settings.seed}": folder / module.METRICS}, folder / "training_curve.png",
                                      f"{algo} on {suite}, seed {settings.seed}")
         for path in [*paths, curve]:

@@ -22,7 +22,7 @@ from mewa_bench.design import exact
 from mewa_bench.design.curate import curate
 from mewa_bench.design.generate import GENERATOR_VERSION, SPECS, SuiteSpec, pair_records
 from mewa_bench.design.policies import policy_names
-from mewa_bench.design.references import summarise
+from mewa_bench.design.references import round_floats, summarise
 from mewa_bench.design.suites import ALL_SUITES, SUITE_FORMAT_VERSION, VALIDATION_SUITES, load_suite
 from mewa_bench.game.distributions import sample_meta_train_workers
 from mewa_bench.game.task import Task
@@ -39,9 +39,12 @@ def validation_suite_content(name: str, seed: int = VALIDATION_SEED) -> dict[str
     suite = load_suite(name)
     kind, spec = next((k, s) for k, s in SPECS.items() if s.name == name)
     pairs: list[dict] = []
+    tasks = [dict(t) for t in suite.content["tasks"]]
     for index, task in enumerate(suite.tasks):
-        pairs += _curated_pairs(task, index, spec, np.random.default_rng([seed, index]))
+        task_pairs, tasks[index]["curation"] = _curated_pairs(task, index, spec, np.random.default_rng([seed, index]))
+        pairs += task_pairs
     content = {k: v for k, v in suite.content.items() if k not in ("sha256", "pairs", "summary", "generator")}
+    content["tasks"] = tasks  # each with the curation of its validation workers, not its test ones
     return {
         **content, "format_version": SUITE_FORMAT_VERSION, "name": VALIDATION_SUITES[ALL_SUITES.index(name)],
         "description": f"validation pairs of {name}: its tasks with workers curated from held-out draws of each "
@@ -54,14 +57,20 @@ def validation_suite_content(name: str, seed: int = VALIDATION_SEED) -> dict[str
     }
 
 
-def _curated_pairs(task: Task, index: int, spec: SuiteSpec, rng: np.random.Generator) -> list[dict]:
-    """The pairs of one task: a pool of meta-train workers, curated as the suite curates its grid."""
+def _curated_pairs(task: Task, index: int, spec: SuiteSpec, rng: np.random.Generator) -> tuple[list[dict], dict]:
+    """The pairs of one task (a pool of meta-train workers, curated as the suite curates its grid) and the
+    curation's figures."""
     drawn = np.round(sample_meta_train_workers(task, rng, POOL[spec.kind]), WORKER_DECIMALS) + 0.0
     pool = drawn[np.lexsort(drawn.T[::-1])]  # lexicographic order, as curation expects its candidates
     values = exact.expected_returns(task, policy_names(task.N, baselines=False), pool).T
     chosen = curate(values, spec.cap, spec.min_best_return, spec.phase2, pool, spec.min_distance)
     rows = list(chosen.selected)
-    pairs = pair_records(task, index, pool[rows], values[rows], spec.families)[0]
+    pairs, best_fixed, ratio = pair_records(task, index, pool[rows], values[rows], spec.families)
     for pair, phase in zip(pairs, chosen.phase):
         pair["phase"] = phase
-    return pairs
+    names = policy_names(task.N, baselines=False)
+    info = {"candidates": len(pool), "usable_candidates": chosen.kept_candidates,
+            "phase2_policy": names[chosen.phase2_policy], "best_fixed_policy": names[best_fixed],
+            "best_fixed_mean_ratio": round_floats(ratio), "workers": len(rows),
+            "phase1_workers": chosen.phase.count(1)}
+    return pairs, info

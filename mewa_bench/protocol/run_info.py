@@ -24,8 +24,9 @@ class RunInfoError(ValueError):
 
 @dataclass(frozen=True)
 class RunInfo:
-    """A training run: its algorithm, training seed, training suite, budget in env steps, free notes and the
-    settings it changed from the algorithm's defaults (`train --set`)."""
+    """A training run: its algorithm, training seed, training suite, budget (env steps; an offline algorithm's
+    own unit, e.g. DPT's meta-episodes), free notes and the settings it changed from the algorithm's defaults
+    (`train --set`, and an offline run's `dataset`)."""
 
     algorithm: str
     seed: int | None = None

@@ -49,23 +49,25 @@ def scratch_usage(scratch: Path, stop_above: int) -> tuple[int, int]:
 
 
 def unlinked_open_bytes(pids: set[int], device: int) -> int:
-    """Bytes on `device` held by files that the processes `pids` keep open after removing them from their directory."""
+    """Bytes on `device` held by files that the processes `pids` keep open or mapped after removing them from
+    their directory."""
     counted: dict[int, int] = {}
     for pid in pids:
-        fds = f"/proc/{pid}/fd"
-        try:
-            names = os.listdir(fds)
-        except OSError:
-            continue  # gone meanwhile
-        for name in names:
+        for kind in ("fd", "map_files"):  # open descriptors, and memory mappings that outlive theirs
+            links = f"/proc/{pid}/{kind}"
             try:
-                if not os.readlink(f"{fds}/{name}").endswith(" (deleted)"):
-                    continue
-                info = os.stat(f"{fds}/{name}")
+                names = os.listdir(links)
             except OSError:
-                continue
-            if info.st_dev == device and info.st_nlink == 0:
-                counted[info.st_ino] = info.st_blocks * 512
+                continue  # gone meanwhile (or, for map_files, not readable here)
+            for name in names:
+                try:
+                    if not os.readlink(f"{links}/{name}").endswith(" (deleted)"):
+                        continue
+                    info = os.stat(f"{links}/{name}")
+                except OSError:
+                    continue
+                if info.st_dev == device and info.st_nlink == 0:
+                    counted[info.st_ino] = info.st_blocks * 512
     return sum(counted.values())
 
 
