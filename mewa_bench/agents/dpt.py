@@ -30,9 +30,10 @@ training loop, checkpoints, and `DPTVectorAgent`, which plays a checkpoint under
   (posterior-sampling-like, as in the paper's online deployment), or the most likely one with
   `greedy`.
 
-Learning test (tests/test_dpt.py): trained on random task-specific play on the two-worker task,
-labelled with the exact optimal actions, it adapts in context (adaptability CI above 0) and beats
-the best fixed policy. Runs on the shipped suites: docs/baselines.md.
+Learning test (tests/test_dpt.py): trained on random play on the two-worker task, labelled with
+the exact optimal actions, it adapts in context (adaptability +0.10 +- 0.04) and scores 0.60
+against the best fixed policy's 0.5. Playing greedily instead loops (a wrong most-likely action in
+a state its own play keeps returning to), so it samples. Runs on the shipped suites: docs/baselines.md.
 """
 
 from __future__ import annotations
@@ -176,9 +177,8 @@ def make_model(settings: Settings) -> Any:
 
         def attend(self, x: Any, q: Any, k: Any, v: Any, mask: Any) -> Any:
             """x + attention(q over k, v; `mask` True where allowed) + MLP."""
-            weights = (q @ k.transpose(-2, -1)) / (d // heads) ** 0.5
-            weights = torch.softmax(weights.masked_fill(~mask, float("-inf")), dim=-1)
-            x = x + self.out((weights @ v).transpose(1, 2).reshape(x.shape))
+            attended = torch.nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+            x = x + self.out(attended.transpose(1, 2).reshape(x.shape))
             return x + self.mlp(self.norm2(x))
 
     class DPT(nn.Module):
