@@ -42,8 +42,14 @@ def test_every_available_algorithm_offers_what_the_train_command_calls(name: str
     module = load_algorithm(name)
     assert is_dataclass(module.Settings)
     assert {"suite", "seed", "total_steps", "workers"} <= {f.name for f in fields(module.Settings)}
-    settings = module.settings_from({"seed": 7, "total_steps": 10, "workers": [[0.0, 1.0, 1.0, 1.0]]})
-    assert (settings.seed, settings.total_steps, settings.workers) == (7, 10, [[0.0, 1.0, 1.0, 1.0]])
+    if "dataset" in {f.name for f in fields(module.Settings)}:  # offline: the dataset decides the workers
+        with pytest.raises(ValueError, match="learns from a dataset: its workers are the dataset's"):
+            module.settings_from({"workers": [[0.0, 1.0, 1.0, 1.0]]})
+        settings = module.settings_from({"seed": 7, "total_steps": 10})
+        assert (settings.seed, settings.total_steps, settings.workers) == (7, 10, [])
+    else:
+        settings = module.settings_from({"seed": 7, "total_steps": 10, "workers": [[0.0, 1.0, 1.0, 1.0]]})
+        assert (settings.seed, settings.total_steps, settings.workers) == (7, 10, [[0.0, 1.0, 1.0, 1.0]])
     with pytest.raises(ValueError, match="no_such_setting"):
         module.settings_from({"no_such_setting": 1})
     assert callable(module.train_run) and callable(module.train_job) and module.METRICS.endswith(".csv")
