@@ -98,6 +98,23 @@ def two_worker_sequences(meta_episodes: int, seed: int) -> dpt.Sequences:
                                      played.episode // 10, played.episode % 10)
 
 
+def test_resume_continues_from_the_last_checkpoint(tmp_path: Path) -> None:
+    import csv
+
+    import torch
+
+    out, data = tmp_path / "run", two_worker_sequences(8, 0)
+    settings = dpt.Settings(suite="narrow-v1", total_steps=2 * 16, checkpoint_every=1, d_model=16, layers=1)
+    dpt.train(settings, out, data=data)
+    with (out / dpt.METRICS).open("a") as f:  # an update that finished after the last checkpoint: redone on resume
+        f.write("3,48,0.1,1.0,0.5\r\n")
+    dpt.train(replace(settings, total_steps=4 * 16, d_model=32), out, resume=True, data=data)
+    with (out / dpt.METRICS).open() as f:
+        assert [int(r["update"]) for r in csv.DictReader(f)] == [1, 2, 3, 4]
+    state = torch.load(out / dpt.CHECKPOINT, weights_only=False)
+    assert (state["update"], state["settings"]["d_model"]) == (4, 16)
+
+
 def test_dpt_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_path: Path) -> None:
     """The learning test: trained on random play labelled with the exact optimal actions (1,000 updates, about 2
     minutes on one core), DPT improves from episode 1 to 10, judged under the protocol's loop on 60 seeds per worker

@@ -63,6 +63,16 @@ def test_resume_continues_from_the_last_checkpoint(tmp_path: Path) -> None:
     assert torch.load(out / CHECKPOINT, weights_only=False)["update"] == 5
 
 
+def test_a_resumed_run_keeps_its_own_settings(tmp_path: Path) -> None:
+    """Only the length of a run may change on resume: its network is the checkpoint's, whatever else is given."""
+    out = tmp_path / "run"
+    train(tiny(), out)
+    train(tiny(total_steps=4 * 8 * 16, hidden=32, learning_rate=0.5), out, resume=True)
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    assert state["update"] == 4
+    assert (state["settings"]["hidden"], state["settings"]["learning_rate"]) == (16, tiny().learning_rate)
+
+
 def test_gae_by_hand() -> None:
     settings = Settings(gamma=0.5, gae_lambda=0.5)
     rewards = torch.tensor([[1.0], [2.0], [3.0]])

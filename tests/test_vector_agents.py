@@ -93,15 +93,17 @@ def test_a_malformed_batched_answer_names_the_lane_and_resume_finishes_the_run(
 @pytest.mark.parametrize("fault,kind,message", [
     ("hang", "timeout", r"act\(\) for 2 lanes did not finish within the time limit of 1 s"),
     ("crash", "crash", r"the agent process died during a batch of 2 calls \(exit code 3\)"),
+    ("memory", "memory", r"MemoryError.*\n.*the agent ran out of memory \(its limit is 1 GiB\)"),
 ])
-def test_a_hanging_or_dying_vector_agent_is_stopped_and_named(tmp_path: Path, fault: str, kind: str,
-                                                            message: str) -> None:
+def test_a_hanging_dying_or_bloated_vector_agent_is_stopped_and_named(tmp_path: Path, fault: str, kind: str,
+                                                                      message: str) -> None:
     args = {"agent_args": {"fault": fault, "at_call": "700"}, "lanes": 2, "seeds": (0, 1), "pairs": (0, 3, 7),
-            "time_limit": 1.0}
+            "time_limit": 1.0, "memory_limit": 1 << 30}
     with pytest.raises(EvaluationError) as caught:
         run(tmp_path, "run.json", **args)
-    assert caught.value.kind == kind and re.search(message, str(caught.value)), str(caught.value)
-    assert "vector_agent.py" in str(caught.value)
+    text = str(caught.value)
+    assert caught.value.kind == kind and re.search(message, text, re.DOTALL), text
+    assert re.search(r"agent \S*vector_agent\.py, pair \d+, seed \d, episode \d, step \d+", text), text
     assert 1 <= len(read_results(tmp_path / "run.json")["units"]) < 6
 
 

@@ -46,7 +46,7 @@ from typing import Any, Callable
 import numpy as np
 
 from mewa_bench.agents.lanes import LaneGenerators, pick_actions, truthy
-from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, keep_metrics_until, load_checkpoint,
+from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, load_for_play, restore, resumed,
                                            save_checkpoint, settings_with, torch_module)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane, state_vector
@@ -228,16 +228,10 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Sequences |
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
+    settings, state = resumed(out, settings, resume)
     model = make_model(settings)
     optimizer = torch.optim.AdamW(model.parameters(), lr=settings.learning_rate, weight_decay=settings.weight_decay)
-    start_update = 0
-    if resume and (out / CHECKPOINT).exists():
-        state = load_checkpoint(out / CHECKPOINT)
-        settings = Settings(**{**state["settings"], "total_steps": settings.total_steps})
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start_update = state["update"]
-        keep_metrics_until(out / METRICS, start_update)
+    start_update = 0 if state is None else restore(state, model, {"optimizer": optimizer})
     if data is None:  # the run's own dataset (a resumed run's, from its checkpoint)
         if not settings.dataset:
             raise ValueError("DPT learns from a training dataset: give --dataset (a folder that `mewa-bench datasets "
@@ -291,13 +285,7 @@ class DPTVectorAgent:
     def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
                  greedy: bool | str = False) -> None:
         torch = _torch()
-
-        torch.set_num_threads(1)
-        state = load_checkpoint(Path(checkpoint))
-        self.settings = Settings(**state["settings"])
-        self.model = make_model(self.settings)
-        self.model.load_state_dict(state["model"])
-        self.model.double().eval()
+        self.settings, self.model = load_for_play(checkpoint, Settings, make_model)
         self.greedy, self.generators = truthy(greedy), LaneGenerators(int(seed), int(num_lanes))
         self.lengths = np.zeros(num_lanes, dtype=np.int64)
         self.previous_action = np.full(num_lanes, -1, dtype=np.int64)

@@ -47,9 +47,9 @@ import numpy as np
 
 from mewa_bench.agents.lanes import LaneGenerators, LaneSteps, pick_actions, truthy
 from mewa_bench.protocol.agent import SingleLane, state_vector
-from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, keep_metrics_until,
-                                           load_checkpoint, make_meta_env, mean_or_nan, save_checkpoint,
-                                           settings_with, torch_module, write_submission)
+from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, load_for_play,
+                                           make_meta_env, mean_or_nan, restore, resumed, save_checkpoint, settings_with,
+                                           torch_module, write_submission)
 
 __all__ = ["CHECKPOINT", "METRICS", "MAMLAgent", "MAMLVectorAgent", "Settings", "make_agent", "settings_from", "train", "train_job",
            "train_run"]
@@ -209,18 +209,11 @@ def train(settings: Settings, out: Path, resume: bool = False,
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
-    start_update = 0
-    state = load_checkpoint(out / CHECKPOINT) if resume and (out / CHECKPOINT).exists() else None
-    if state is not None:  # the run's own settings; only its length may change
-        settings = Settings(**{**state["settings"], "total_steps": settings.total_steps})
+    settings, state = resumed(out, settings, resume)
     model = make_model(settings)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings.learning_rate,
                                  eps=1e-5)
-    if state is not None:
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start_update = state["update"]
-        keep_metrics_until(out / METRICS, start_update)  # rows written after the checkpoint will be redone
+    start_update = 0 if state is None else restore(state, model, {"optimizer": optimizer})
     generator = torch.Generator().manual_seed(settings.seed * 1_000_003 + start_update)
     env = make_meta_env(settings.suite, settings.num_envs, settings.episodes, settings.workers)
     obs_np, _ = env.reset(seed=settings.seed + start_update)
@@ -353,13 +346,7 @@ class MAMLVectorAgent:
     def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
                  greedy: bool | str = False) -> None:
         torch = _torch()
-
-        torch.set_num_threads(1)
-        state = load_checkpoint(Path(checkpoint))
-        self.settings = Settings(**state["settings"])
-        self.model = make_model(self.settings)
-        self.model.load_state_dict(state["model"])
-        self.model.double().eval()
+        self.settings, self.model = load_for_play(checkpoint, Settings, make_model)
         self.greedy = truthy(greedy)
         self.generators = LaneGenerators(int(seed), int(num_lanes))
         self.steps = LaneSteps(int(num_lanes), OBS_SIZE)

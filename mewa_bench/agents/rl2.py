@@ -36,8 +36,8 @@ from typing import Any, Callable
 import numpy as np
 
 from mewa_bench.agents.lanes import RecurrentLanes, truthy
-from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, keep_metrics_until,
-                                           load_checkpoint, make_meta_env, mean_or_nan, normalised_returns_paid,
+from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, load_for_play,
+                                           make_meta_env, mean_or_nan, normalised_returns_paid, restore, resumed,
                                            save_checkpoint, settings_with, torch_module, workers_arg)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane
@@ -125,17 +125,10 @@ def train(settings: Settings, out: Path, resume: bool = False,
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
+    settings, state = resumed(out, settings, resume)
     policy = make_policy(settings.hidden)
     optimizer = torch.optim.Adam(policy.parameters(), lr=settings.learning_rate, eps=1e-5)
-    start_update = 0
-    if resume and (out / CHECKPOINT).exists():
-        state = load_checkpoint(out / CHECKPOINT)
-        # the run's own settings; only its length may change (to train on from a finished run)
-        settings = Settings(**{**state["settings"], "total_steps": settings.total_steps})
-        policy.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        start_update = state["update"]
-        keep_metrics_until(out / METRICS, start_update)  # rows written after the checkpoint will be redone
+    start_update = 0 if state is None else restore(state, policy, {"optimizer": optimizer})
     generator = torch.Generator().manual_seed(settings.seed * 1_000_003 + start_update)
     env = make_env(settings)
     obs_np, _ = env.reset(seed=settings.seed + start_update)
@@ -265,14 +258,7 @@ class RL2VectorAgent(RecurrentLanes):
 
     def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
                  greedy: bool | str = False) -> None:
-        torch = _torch()
-
-        torch.set_num_threads(1)
-        state = load_checkpoint(Path(checkpoint))
-        self.settings = Settings(**state["settings"])
-        self.policy = make_policy(self.settings.hidden)
-        self.policy.load_state_dict(state["model"])
-        self.policy.double().eval()
+        self.settings, self.policy = load_for_play(checkpoint, Settings, lambda s: make_policy(s.hidden))
         super().__init__(self._forward, self.settings.hidden, int(num_lanes), int(seed), truthy(greedy))
 
     def _forward(self, x: Any, h: Any, reset: Any) -> tuple[Any, Any]:

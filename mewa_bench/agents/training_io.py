@@ -216,6 +216,40 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     return torch.load(path, weights_only=False)
 
 
+def resumed(out: Path, settings: S, resume: bool) -> tuple[S, dict[str, Any] | None]:
+    """The settings a run trains with and, when it resumes from `out`'s checkpoint, that checkpoint's state.
+
+    A resumed run keeps its own settings (only its length may change, to train on from a finished run),
+    and the metrics rows written after its checkpoint are dropped: they will be redone.
+    """
+    path = Path(out) / CHECKPOINT
+    if not (resume and path.exists()):
+        return settings, None
+    state = load_checkpoint(path)
+    keep_metrics_until(Path(out) / METRICS, state["update"])
+    return type(settings)(**{**state["settings"], "total_steps": settings.total_steps}), state
+
+
+def restore(state: dict[str, Any], model: Any, optimizers: dict[str, Any]) -> int:
+    """A checkpoint's weights into `model` and each optimizer's state from `state[key]`; the update to go on from."""
+    model.load_state_dict(state["model"])
+    for key, optimizer in optimizers.items():
+        optimizer.load_state_dict(state[key])
+    return int(state["update"])
+
+
+def load_for_play(checkpoint: str | Path, settings_class: type[S], build: Any) -> tuple[S, Any]:
+    """A checkpoint's settings and `build(settings)` with its weights, in float64 evaluation mode on one
+    compute thread: how every vector agent plays (float64 so that the batch size cannot flip an action)."""
+    torch = torch_module("playing a checkpoint")
+    torch.set_num_threads(1)
+    state = load_checkpoint(Path(checkpoint))
+    settings = settings_class(**state["settings"])
+    model = build(settings)
+    model.load_state_dict(state["model"])
+    return settings, model.double().eval()
+
+
 AGENT_FILE = '''"""{title} agent trained by `{command}`; plays the checkpoint beside this file.
 
 Evaluate it: `mewa-bench evaluate {folder}/agent.py --suite {suite}`.

@@ -154,10 +154,13 @@ class _LanePlayer:
                 replies = self.runner.batch([(lane, active[lane][1].operation, active[lane][1].args) for lane in lanes])
             except AgentError as e:
                 self.close()
-                where = f"agent {c.agent_path}"
                 if e.index is not None and e.index < len(lanes):
                     _, failed, _, pair, seed = active[lanes[e.index]]
                     where = describe(failed, c.agent_path, pair, seed)
+                else:  # the whole batch failed (the process died, ran out of memory): where its first lane was
+                    _, first, _, pair, seed = active[lanes[0]]
+                    others = f" (and {len(lanes) - 1} more lanes in the same batch)" if len(lanes) > 1 else ""
+                    where = describe(first, c.agent_path, pair, seed) + others
                 raise EvaluationError(e.kind, f"{where}: {e}") from None
             for lane, reply in zip(lanes, replies):
                 calls, _, started, pair, seed = active[lane]

@@ -3,7 +3,7 @@ depend on how lanes are batched. It uses every call of the batched protocol: res
 observe's transitions, end_episode, and (with sampled=true) one generator per lane.
 
 Agent args: `seed`, `sampled` (true: noise from each lane's generator), `fault` (none, raise, short,
-two_d, float, nan, range, list, hang, crash: how act() misbehaves), `at_call` (the act() call that
+two_d, float, nan, range, list, hang, crash, memory: how act() misbehaves), `at_call` (the act() call that
 misbehaves), `flag` (a file path: the fault only happens while that file exists, so a resumed run can
 succeed). `vector_twin_agent.py` plays the same policy one lane per object.
 """
@@ -82,6 +82,8 @@ class VectorAgent:
             time.sleep(60)
         if self.fault == "crash":
             os._exit(3)
+        if self.fault == "memory":  # 8 GiB, over the test's memory limit
+            return np.zeros(8 << 30, dtype=np.uint8)[: len(actions)].astype(np.int64)
         return actions
 
     def observe(self, lanes, transitions):
