@@ -4,7 +4,7 @@ Baseline measured in the same run: the unwrapped `MewaEnv` stepped with random a
 process. Then `evaluate` isolated with one lane (one pipe round trip per step, the protocol-1
 design), isolated with the default lanes (one round trip per step of all lanes), and in-process.
 Agent steps/s count the play only; the scoring (reference replays + bootstrap) is timed apart.
-SPEC / issue targets: isolated >= 100,000 agent steps/s; bayes-adaptive on narrow-v1 with the
+Targets (SPEC and the planners): isolated >= 100,000 agent steps/s; bayes-adaptive on narrow-v1 with the
 default protocol in under 60 s (`--bayes`).
 
 `--neural`: a small torch GRU (64 units, the README's batched example) against the same network

@@ -85,6 +85,52 @@ def test_intervals_agree_with_scipy_bootstrap_over_runs() -> None:
             assert s.mean.high == pytest.approx(res.confidence_interval.high, abs=0.25 * ours)
 
 
+def test_every_statistics_interval_has_scipys_bootstrap_standard_error() -> None:
+    """IQM, adaptability, optimality gap, P(> a line), a point of the curve and of the profile, and P(X > Y)
+    between two algorithms: scipy's bootstrap of the same statistic over whole runs (two independent samples for
+    P(X > Y)) gives the standard error our interval is built on, within bootstrap error."""
+    from scipy.stats import t
+
+    from mewa_bench.protocol.aggregate import PROFILE_THRESHOLDS
+
+    rng = np.random.default_rng(12)
+    mu = rng.uniform(0.6, 0.95, P)
+    runs_a, runs_b = 6, 5
+    data = synthetic_runs(rng, runs_a, mu, 0.04, "a", run_sd=0.08) + synthetic_runs(rng, runs_b, mu, 0.0, "b",
+                                                                                    run_sd=0.08)
+    line = mu + 0.01
+    result = aggregate(data, {"best_fixed": line}, samples=4000)
+    a = next(s for s in result.algorithms if s.algorithm == "a")
+    curves = {name: np.stack([r.curves for r in data if r.algorithm == name]) for name in "ab"}
+    cells = {name: c.mean(axis=-1) for name, c in curves.items()}
+    at = PROFILE_THRESHOLDS.index(0.8)
+
+    def half_width_to_se(estimate, n: int) -> float:
+        """The standard error behind an interval (a probability's may be clipped at 0 or 1 on one side only)."""
+        half = max(estimate.mean - estimate.low, estimate.high - estimate.mean)
+        return half / (t.ppf(0.5 + CONFIDENCE / 2, n - 1) * np.sqrt(n / (n - 1)))
+
+    one_sample = {  # statistic of algorithm a's resampled runs (indices into its runs)
+        "iqm": (a.iqm, lambda i: interquartile_mean(cells["a"][i], axis=None)),
+        "adaptability": (a.adaptability, lambda i: float(np.mean(curves["a"][i, :, -1] - curves["a"][i, :, 0]))),
+        "optimality gap": (a.optimality_gap, lambda i: optimality_gap(cells["a"][i])),
+        "P(> best fixed)": (a.over_lines["best_fixed"],
+                            lambda i: improvement_probability(cells["a"][i], line[None, :])),
+        "s_5": (a.curve[4], lambda i: float(np.mean(curves["a"][i, :, 4]))),
+        "profile at 0.8": (a.profile[at], lambda i: float(np.mean(cells["a"][i] > 0.8))),
+    }
+    for what, (estimate, statistic) in one_sample.items():
+        res = stats.bootstrap((np.arange(runs_a),), lambda i: statistic(i.astype(int)), n_resamples=4000,
+                              vectorized=False, rng=np.random.default_rng(5), method="percentile")
+        assert estimate.low < estimate.mean < estimate.high, what
+        assert half_width_to_se(estimate, runs_a) == pytest.approx(res.standard_error, rel=0.08), what
+    res = stats.bootstrap((np.arange(runs_a), np.arange(runs_b)),
+                          lambda i, j: improvement_probability(cells["a"][i.astype(int)], cells["b"][j.astype(int)]),
+                          n_resamples=4000, vectorized=False, paired=False, rng=np.random.default_rng(6),
+                          method="percentile")
+    assert half_width_to_se(result.improvement[("a", "b")], runs_b) == pytest.approx(res.standard_error, rel=0.08)
+
+
 def _stratified_by_pair_interval(cells: np.ndarray, rng: np.random.Generator, samples: int) -> tuple[float, float]:
     """rliable's StratifiedBootstrap over runs (each pair's runs resampled on their own), percentile interval."""
     runs, pairs = cells.shape

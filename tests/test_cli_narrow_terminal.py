@@ -81,3 +81,20 @@ def test_boolean_flags_are_single_flags(command: list[str]) -> None:
     result = CliRunner().invoke(app, [*command, "--help"], env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     assert set(re.findall(r"--no-[a-z-]+", result.output)) <= NEGATIVE_FLAGS_IN_USE
+
+
+def test_the_dataset_catalog_reads_at_80_columns() -> None:
+    """Every dataset name whole, no header cut, at 80 columns; every column at 120."""
+    from mewa_bench.datasets.catalog import load_catalog
+    from mewa_bench.datasets.training_data import TRAINING_DATASETS
+
+    content = load_catalog(None)
+    names = [e["name"] for e in content["datasets"] + content["evaluation_recordings"]] + list(TRAINING_DATASETS)
+    narrow = CliRunner().invoke(app, ["datasets", "list"], env={"COLUMNS": "80"})
+    assert narrow.exit_code == 0, narrow.output
+    assert max(map(len, narrow.output.splitlines())) <= 80
+    assert all(re.search(rf"^\s*{re.escape(name)}\s", narrow.output, re.M) for name in names), narrow.output
+    assert all(re.fullmatch(r"[0-9a-f]{10,}", cut) for cut in re.findall(r"(\S*)…", narrow.output))  # sha256s only
+    assert "episodes" in narrow.output and "frames" in narrow.output
+    wide = CliRunner().invoke(app, ["datasets", "list"], env={"COLUMNS": "200"})
+    assert all(header in wide.output for header in ("suite", "tier", "policy", "source", "size"))

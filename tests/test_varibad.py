@@ -1,7 +1,7 @@
 """VariBAD: the ELBO's pieces by hand, whole meta-episodes kept for the VAE, the policy's
 loss kept out of the encoder, deterministic training with metrics and checkpoints written as they
 come, resume, the checkpoint played under the evaluation protocol, the train command, and the
-issue's learning test on two opposite workers judged with the exact engine."""
+learning test on two opposite workers judged with the exact engine."""
 
 from __future__ import annotations
 

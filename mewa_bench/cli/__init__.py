@@ -57,7 +57,7 @@ RAY_ADDRESS_HELP = ("Run the units as Ray tasks on the Ray cluster at this addre
 
 @app.command()
 def evaluate(
-    agent: Path = typer.Argument(..., metavar="AGENT", help="Your agent: a .py file with make_agent(observation_space, action_space) or class Agent."),
+    agent: Path = typer.Argument(..., metavar="AGENT", help="Your agent: a .py file with make_vector_agent(...) / class VectorAgent (batched: all lanes in one call) or make_agent(...) / class Agent (one lane per object); see the README."),
     suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1: the paper's; narrow-v2, wide-v2: recommended for adaptation) or path."),
     seeds: str = typer.Option("default", show_default=False, help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; default: "
                               f"{DEFAULT_SEEDS_HELP} (ranked runs use exactly these)."),
@@ -70,8 +70,9 @@ def evaluate(
     memory_limit: str = typer.Option("4G", help="Agent address-space limit, e.g. 4G, 512M, or none."),
     privileged: bool = typer.Option(False, "--privileged", metavar="", help="Tell the agent the hidden pair (reference agents only; never ranked)."),
     jobs: int = typer.Option(1, min=1, metavar="N", help="Parallel worker processes over (pair, seed) units."),
-    lanes: int = typer.Option(64, min=1, metavar="N", help="Agent objects played side by side per process (one IPC round trip "
-                              "per step for all of them); 1 = one agent playing the units in order."),
+    lanes: int = typer.Option(64, min=1, metavar="N", help="Units played side by side per process, one IPC round trip per step for "
+                              "all: a vector agent gets them in one call, a one-lane agent as that many objects; 1 = one "
+                              "unit at a time."),
     resume: bool = typer.Option(False, "--resume", metavar="", help="Continue an interrupted run in the same results file (same agent file)."),
     overwrite: bool = typer.Option(False, "--overwrite", metavar="", help="Replace an existing results file."),
     pairs: str = typer.Option(None, help="Only these pairs, e.g. 0,3 (a partial run, for quick checks)."),
@@ -599,9 +600,9 @@ def datasets_list(catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None
     from mewa_bench.datasets.training_data import TRAINING_DATASETS
 
     content = _or_exit(load_catalog, catalog)
-    console.print(training_table(content))
-    console.print(buildable_table(TRAINING_DATASETS, content))
-    console.print(evaluation_table(content))
+    console.print(training_table(content, console.width))
+    console.print(buildable_table(TRAINING_DATASETS, content, console.width))
+    console.print(evaluation_table(content, console.width))
 
 
 @datasets_app.command("info")

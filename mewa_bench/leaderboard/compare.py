@@ -120,7 +120,6 @@ def verdict(name_x: str, name_y: str, p: Estimate) -> str:
 def compare_figure(compared: Compared, path: Path) -> None:
     """Curves s_1..s_K with run-level bands, and performance profiles with bands; PNG written atomically."""
     import numpy as np
-    from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -131,17 +130,16 @@ def compare_figure(compared: Compared, path: Path) -> None:
     fig = Figure(figsize=(12, 4.8), dpi=100)
     FigureCanvasAgg(fig)
     curves, profiles = fig.subplots(1, 2)
-    colors = colormaps["tab10"].colors
     for i, algo in enumerate(compared.comparison.algorithms):
         c, style = line_style(i)
         name = algo.algorithm.replace("$", r"\$")  # a name is text, never mathtext
         label = f"{name} ({len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''})"
         for ax, xs, estimates in ((curves, np.arange(1, len(algo.curve) + 1), algo.curve),
                                   (profiles, np.array(PROFILE_THRESHOLDS), algo.profile)):
-            ax.plot(xs, [e.mean for e in estimates], color=colors[c], ls=style, label=label,
+            ax.plot(xs, [e.mean for e in estimates], color=c, ls=style, label=label,
                     marker="o" if ax is curves else None, ms=3)
             if estimates[0].low is not None:
-                ax.fill_between(xs, [e.low for e in estimates], [e.high for e in estimates], color=colors[c],
+                ax.fill_between(xs, [e.low for e in estimates], [e.high for e in estimates], color=c,
                                 alpha=0.15, lw=0)
     curves.axhline(float(compared.suite.summary["score"]["best_fixed"]), color="#333333", ls=(0, (6, 2)), lw=1.2,
                    label="best fixed policy (exact)")

@@ -19,29 +19,37 @@ _REFERENCE_STYLES = (("#000000", (0, (6, 2))), ("#555555", (0, (1, 1.5))), ("#33
 _LINE_STYLES = ("-", "--", "-.", ":")
 
 
-def line_style(i: int) -> tuple[int, str]:
-    """(tab10 colour index, line style) of the i-th algorithm: no two of the first 40 share both."""
-    return i % 10, _LINE_STYLES[(i // 10) % len(_LINE_STYLES)]
+def _palette() -> tuple[tuple[float, float, float], ...]:
+    """18 distinct colours: tab10's, then tab20's lighter shades of them, without the greys (the reference lines')."""
+    from matplotlib import colormaps
+
+    tab20 = colormaps["tab20"].colors
+    return tuple(c for i, c in enumerate(tab20[0::2] + tab20[1::2]) if i % 10 != 7)
+
+
+def line_style(i: int) -> tuple[tuple[float, float, float], str]:
+    """(colour, line style) of the i-th algorithm: the first 18 have a colour each (solid, then dashed past 10);
+    no two of the first 72 share both."""
+    palette = _palette()
+    return palette[i % len(palette)], _LINE_STYLES[(i // 10) % len(_LINE_STYLES)]
 
 
 def curves_figure(board: Board):
     """s_1..s_K per algorithm with its 95% CI band over training runs, the suite's reference lines dashed."""
     # Figure + Agg canvas directly: no pyplot, so the caller's global backend and state are untouched.
-    from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(9, 5), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    colors = colormaps["tab10"].colors
     lines = _lines(board)
     for i, (label, curve) in enumerate(lines):
         x = np.arange(1, len(curve) + 1)
         color, style = line_style(i)
-        ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=colors[color], ls=style, label=label)
+        ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=color, ls=style, label=label)
         if curve[0].low is not None:
-            ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=colors[color], alpha=0.15, lw=0)
+            ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=color, alpha=0.15, lw=0)
     k = len(lines[0][1]) if lines else EPISODES_PER_PAIR
     for row, (grey, dashes) in zip(reference_rows(board.suite), _REFERENCE_STYLES):
         ax.axhline(row.mean, ls=dashes, lw=1.2, color=grey, label=f"{row.name} (exact)")
