@@ -175,16 +175,25 @@ def test_agent_processes_run_one_compute_thread_unless_the_user_sets_a_number(tm
 
 
 def test_a_logged_vector_agent_run_records_every_step(tmp_path: Path) -> None:
+    """MCAP and Rerun logs of a batched run, read back with each format's reader: every step, every episode."""
     pytest.importorskip("mcap")
+    pytest.importorskip("rerun")
     from mcap.reader import make_reader
+    from test_logs import rrd_rows, verify_rrd
 
-    from mewa_bench.logs import McapSink
+    from mewa_bench.logs import McapSink, RerunSink
     from mewa_bench.logs.mcap_log import TOPIC_STEP
+    from mewa_bench.logs.rerun_log import ACTION, SCORE
 
     config = EvalConfig(agent_path=VECTOR, out=tmp_path / "r.json", suite="narrow-v2", seeds=(0,), pairs=(0, 3),
                         lanes=2)
-    results, _ = evaluate(config, sinks=[McapSink(tmp_path / "run.mcap")])
+    sinks = [McapSink(tmp_path / "run.mcap"), RerunSink(tmp_path / "run.rrd")]
+    results, _ = evaluate(config, sinks=sinks)
     with open(tmp_path / "run.mcap", "rb") as f:
         topics = [c.topic for _, c, _ in make_reader(f).iter_messages()]
     steps = sum(sum(u["lengths"]) for u in results["units"])
     assert steps > 0 and topics.count(TOPIC_STEP) == steps
+    verify_rrd(tmp_path / "run.rrd")
+    assert len(rrd_rows(tmp_path / "run.rrd", f"/{ACTION}")) == steps
+    scores = {(r["pair"], r["episode"]) for r in rrd_rows(tmp_path / "run.rrd", f"/{SCORE}")}
+    assert scores == {(p, k) for p in (0, 3) for k in range(10)}
