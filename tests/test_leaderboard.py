@@ -286,8 +286,10 @@ def test_one_line_per_algorithm_and_no_two_lines_share_colour_and_style(narrow: 
     lines = curves_figure(board).axes[0].get_lines()
     styles = [(tuple(np.round(matplotlib_rgba(line.get_color()), 4)), str(line.get_linestyle())) for line in lines]
     assert len(lines) == 12 + 5 and len(set(styles)) == len(styles)  # 12 algorithms: more than tab10's colours
-    checkpoints = curves_figure(Board(narrow, board.entries, ())).axes[0].get_lines()  # the service's boards
-    assert len(checkpoints) == len(entries) + 5
+    colours = [colour for colour, _ in styles]
+    assert len(set(colours[:12])) == 12 and not set(colours[:12]) & set(colours[12:])  # algorithms: a colour each
+    served = curves_figure(Board(narrow, (), (), board.comparison, board.algorithms)).axes[0].get_lines()  # service's
+    assert len(served) == 12 + 5 and [x.get_label() for x in served] == [x.get_label() for x in lines]  # same lines
 
 
 def matplotlib_rgba(color: object) -> tuple[float, ...]:
@@ -371,3 +373,23 @@ def test_an_agent_name_with_dollar_signs_is_drawn_as_text(narrow: Suite, tmp_pat
     report = build_leaderboards(subs, tmp_path / "boards")
     assert (tmp_path / "boards" / "narrow-v1.png").stat().st_size > 0
     assert {e.agent for e in report.entries["narrow-v1"]} == {"$$", r"cost $\frac{"} and not report.invalid
+
+
+def test_the_board_says_when_p_over_best_fixed_only_counts_pairs() -> None:
+    """narrow-v2's best fixed policy scores 0 or 1 on every pair (read here from the suite file's t-optimal values),
+    so its board says what P(> best fixed) means there; the other suites' boards have no such note."""
+    from mewa_bench.design.suites import load_suite
+    from mewa_bench.leaderboard.algorithm_tables import best_fixed_note
+    from mewa_bench.design.policies import policy_names
+
+    for name in ("narrow-v1", "wide-v1", "wide-v2"):
+        assert best_fixed_note(load_suite(name)) is None
+    suite = load_suite("narrow-v2")
+    fixed = [p.data["toptimal"][policy_names(suite.tasks[p.task_index].N).index(
+        suite.content["tasks"][p.task_index]["curation"]["best_fixed_policy"])] for p in suite.pairs]
+    zeros = sum(v == 0 for v in fixed)
+    assert 0 < zeros < len(fixed) and all(v == 0 or v == pytest.approx(p.max_expected) for v, p in zip(fixed, suite.pairs))
+    note = best_fixed_note(suite)
+    assert f"0 on {zeros} of its {len(fixed)} pairs" in note and f"{zeros / len(fixed):.4f}" in note
+    board = (Path(__file__).resolve().parents[1] / "leaderboards" / "narrow-v2.md").read_text()
+    assert note in board

@@ -542,4 +542,33 @@ def test_a_submitters_runs_of_one_algorithm_share_a_row_of_the_algorithms_table(
     assert other["mean"]["low"] is None and "no interval over training runs" in other["note"]
     page = get(server, "/leaderboards/narrow-v1").text
     assert 'id="algorithms"' in page and 'data-runs="3"' in page and "<h2>Checkpoints</h2>" in page
-    assert page.index('id="algorithms"') < page.index('id="ranking"')
+    # the board leads with the algorithms table, then the figure, then the checkpoints
+    assert (page.index('id="algorithms"') < page.index('id="curves"') < page.index("<h2>Checkpoints</h2>")
+            < page.index('id="ranking"'))
+    runs_drawn = sum(r["runs"] for r in board["algorithms"])
+    assert "per algorithm (" in page and f"from {runs_drawn} runs: a submitter" in page
+    assert "95% CI over training runs" in page and "per agent" not in page
+    png = get(server, "/leaderboards/narrow-v1/curves.png")
+    assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # the figure the server draws: one line per row of the algorithms table (the PLOTTED best), a band (over training
+    # runs) only for an algorithm of several runs; the checkpoints' figure had a line and a band per entry
+    from mewa_bench.service.db import make_engine, session_factory
+    from mewa_bench.service.settings import Settings
+    from mewa_bench.service.web.curves import PLOTTED, board_curves
+
+    settings = Settings(server.data_dir, server.db)  # the server's (uploads unranked)
+    engine = make_engine(settings.database_url)
+    try:
+        with session_factory(engine)() as session:
+            axes = board_curves(session, settings, "narrow-v1", load_suite("narrow-v1")).axes[0]
+    finally:
+        engine.dispose()
+    shown = board["algorithms"][:PLOTTED]
+    expected = [f"{r['algorithm']} ({r['runs']} run{'s' if r['runs'] > 1 else ''})".replace("$", r"\$")
+                + (" (privileged)" if r["privileged"] else "") for r in shown]
+    labels = [line.get_label() for line in axes.get_lines()]
+    assert labels[:-5] == expected and len(labels) == len(shown) + 5  # and the five reference lines
+    assert len(axes.collections) == sum(r["runs"] > 1 for r in shown)
+    if ours in shown:
+        assert f"{ours['algorithm']} (3 runs)" in labels

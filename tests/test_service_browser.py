@@ -197,7 +197,11 @@ def test_leaderboard_page_shows_the_api_ranking_and_the_figure(page, server, tok
     assert figure.evaluate("i => i.naturalWidth") > 600 and figure.evaluate("i => i.naturalHeight") > 300
     png = page.request.get(server.url + figure.get_attribute("src"))
     assert png.status == 200 and png.headers["content-type"] == "image/png" and png.body()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert f"({board['entries']} entries;" in page.locator("figure figcaption").inner_text()
+    caption = page.locator("figure figcaption").inner_text()  # one line per algorithm, from every run
+    algorithms, runs = len(board["algorithms"]), sum(r["runs"] for r in board["algorithms"])
+    assert f"{algorithms} algorithms, from {runs} runs:" in caption and runs == board["entries"] >= 3
+    after = "t => t.compareDocumentPosition(document.querySelector('#curves'))"
+    assert page.locator("#algorithms").evaluate(after) == 4  # the figure follows the algorithms table
     screenshot(page, "service-leaderboard-narrow-v1.png")
 
 

@@ -6,9 +6,12 @@ import csv
 import html
 import io
 
+import numpy as np
+
+from mewa_bench.design.suites import Suite
 from mewa_bench.leaderboard.algorithms import AlgorithmRow
 from mewa_bench.protocol.aggregate import BOOTSTRAP_SAMPLES, BOOTSTRAP_SEED, MIN_RUNS
-from mewa_bench.protocol.scoring import Estimate
+from mewa_bench.protocol.scoring import Estimate, reference_line_cells
 
 HEADER = ("rank", "algorithm", "runs", "IQM [95% CI]", "mean score [95% CI]", "s_1", "s_10",
           "adaptability [95% CI]", "P(> best fixed) [95% CI]", "adapts", "beats best fixed", "note")
@@ -25,6 +28,17 @@ EXPLANATION = (
     f"{BOOTSTRAP_SAMPLES} samples, small-sample corrected: docs/protocol.md); with fewer than {MIN_RUNS} runs "
     f"they cannot include training variance (note). Verdicts: adapts = adaptability CI above 0; beats best fixed "
     f"= mean-score CI above the best fixed policy's score.")
+
+
+def best_fixed_note(suite: Suite) -> str | None:
+    """What P(> best fixed) can say on a suite whose best fixed policy scores only 0 or 1 on its pairs (None otherwise)."""
+    values = np.round(reference_line_cells(suite)["best_fixed"], 9)
+    if not np.all((values == 0) | (values == 1)):
+        return None
+    zeros = int(np.sum(values == 0))
+    return (f"On {suite.name} the best fixed policy scores exactly 0 on {zeros} of its {len(values)} pairs and 1 on "
+            f"the others, so P(> best fixed) is {zeros / len(values):.4f} for any agent whose pair scores lie strictly "
+            f"between 0 and 1: it counts pairs, not how much better. Read the mean score and its verdict.")
 
 
 def _ci(e: Estimate) -> str:

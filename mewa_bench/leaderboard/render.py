@@ -100,7 +100,9 @@ def markdown(board: Board, image_name: str) -> str:
 
     lines = [f"# Leaderboard: {board.suite.name}", "", suite_facts(board, "`"), ""]
     if board.algorithms:
-        lines += ["## Algorithms", "", *algorithm_tables.markdown_lines(board.algorithms), ""]
+        note = algorithm_tables.best_fixed_note(board.suite)
+        lines += ["## Algorithms", "", *algorithm_tables.markdown_lines(board.algorithms), *(["", note] if note else []),
+                  ""]
     lines += ["## Checkpoints", "", CHECKPOINTS, ""]
     lines += [md_row(list(HEADER)), "|" + "---|" * len(HEADER)]
     for row in board.rows:
@@ -164,8 +166,9 @@ def index_html(boards: list[Board], files: dict[str, tuple[str, ...]]) -> str:
         name = html.escape(board.suite.name)
         out += [f'<h2 id="{name}">{name}</h2>', f"<p>{html.escape(suite_facts(board))}</p>"]
         if board.algorithms:
+            note = algorithm_tables.best_fixed_note(board.suite)
             out += ["<h3>Algorithms</h3>", *algorithm_tables.html_table(board.algorithms),
-                    f"<p>{html.escape(algorithm_tables.EXPLANATION)}</p>"]
+                    f"<p>{html.escape(algorithm_tables.EXPLANATION)}</p>", *([f"<p>{html.escape(note)}</p>"] if note else [])]
         out += ["<h3>Checkpoints</h3>", f"<p>{html.escape(CHECKPOINTS)}</p>", *_html_table(board),
                 f'<p><img src="{png}" alt="Adaptation curves on {name}"></p>',
                 f'<p>Also as <a href="{md}">Markdown</a> and <a href="{csv_name}">CSV</a>'

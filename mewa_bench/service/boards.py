@@ -7,7 +7,8 @@ self-reported (a results file the submitter ran: re-scored from its episodes, bu
 server could not see; unranked unless the server's `rank_uploads` is set) or reference,
 with the suite's exact reference lines and each agent's adaptation curve s_1..s_10 with its CIs.
 Above the rows of a public board, the algorithms table (`algorithm_table`): the runs a submitter
-sent under one algorithm name, with statistics over training runs as the static boards have them.
+sent under one algorithm name, with statistics over training runs as the static boards have them;
+the board's figure draws the same algorithms (`board_algorithms`, `service.web.curves`).
 A hidden board shows scores only: never the hidden suite, its pairs, its size or the runs' units.
 Its reference lines (the fixed policies' and the optimum's means over the whole suite) are shown:
 one number each, which the agents' rows are read against, and from which no pair can be learned.
@@ -17,14 +18,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 
 from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
+from mewa_bench.leaderboard.algorithms import AlgorithmRow
 from mewa_bench.leaderboard.board import AGENT, PRIVILEGED, REFERENCE, Row, competition_ranks, reference_rows
+from mewa_bench.protocol.aggregate import AlgorithmComparison
 from mewa_bench.protocol.config import EPISODES_PER_PAIR
 from mewa_bench.service.models import REFERENCE_SOURCE, SELF_REPORTED
 from mewa_bench.service.settings import HIDDEN_SUFFIX, Settings
@@ -110,6 +115,7 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
                      "curve_low": None, "curve_high": None})  # fixed policies: a flat curve
     rows.sort(key=lambda r: (-r["mean"], KIND_ORDER[r["kind"]], r["name"]))
     # Hidden boards have none: its fractions of (run, pair) cells would tell the hidden suite's number of pairs.
+    # (Their figure draws the algorithms all the same: curves and run-level bands are means over pairs, no fractions.)
     algorithms = [] if hidden or suite is None else algorithm_table(suite, entries, submitters,
                                                                      settings.rank_uploads)
     return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
@@ -118,28 +124,81 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
             "algorithms": algorithms, "rows": rows}
 
 
-_TABLES: dict[tuple, list[dict[str, Any]]] = {}  # board entries never change once written: tables by their ids
-_TABLES_KEPT = 32
+@dataclass(frozen=True)
+class BoardAlgorithms:
+    """A board's runs grouped by (submitter, algorithm name): the statistics over runs (`comparison`, best mean
+    first, what the board's figure draws), the table's rows in the same order, and each algorithm's source."""
+
+    comparison: AlgorithmComparison
+    rows: tuple[AlgorithmRow, ...]
+    sources: dict[str, str]
+
+    def table(self) -> list[dict[str, Any]]:
+        """The algorithms table as JSON rows."""
+        return [{**dataclasses.asdict(row), "source": self.sources[row.algorithm]} for row in self.rows]
+
+
+_GROUPED: dict[tuple, BoardAlgorithms | None] = {}  # board entries never change once written: groups by their ids
+_GROUPED_KEPT = 32
+_GROUPED_LOCK = threading.Lock()  # the pages' and the figures' request threads share the cache
+
+
+def _grouped_key(suite: Suite, ids: Iterable[int], rank_uploads: bool) -> tuple:
+    """The cache key of a board's groups: its suite, its entries (written once, never changed) and the ranking rule."""
+    return suite.sha256, tuple(sorted(ids)), rank_uploads
 
 
 def algorithm_table(suite: Suite, entries: list[Any], submitters: dict[int, int],
                     rank_uploads: bool) -> list[dict[str, Any]]:
-    """The algorithms table: a board's runs grouped by (submitter, algorithm name), statistics over the runs.
-
-    A submitter's runs under one algorithm name share a row (another submitter's runs under the same name
-    never join it: the row is then named with its submitter's number); a self-reported run never joins a
-    server-evaluated one. A run without per-pair curves (stored before the service kept them) is left out."""
-    key = (suite.sha256, tuple(sorted(e.id for e in entries)), rank_uploads)
-    if key not in _TABLES:
-        if len(_TABLES) >= _TABLES_KEPT:
-            _TABLES.pop(next(iter(_TABLES)))
-        _TABLES[key] = _algorithm_table(suite, entries, submitters, rank_uploads)
-    return _TABLES[key]
+    """The algorithms table: a board's runs grouped by (submitter, algorithm name), statistics over the runs."""
+    grouped = grouped_runs(suite, entries, submitters, rank_uploads)
+    return [] if grouped is None else grouped.table()
 
 
-def _algorithm_table(suite: Suite, entries: list[Any], submitters: dict[int, int],
-                     rank_uploads: bool) -> list[dict[str, Any]]:
-    """algorithm_table, computed."""
+def grouped_runs(suite: Suite, entries: list[Any], submitters: dict[int, int],
+                 rank_uploads: bool) -> BoardAlgorithms | None:
+    """A board's runs grouped by (submitter, algorithm name), with statistics over the runs (None: no run).
+
+    `entries` are board entries (or rows with their `id`, `agent_name`, `algorithm`, `source`, `privileged` and
+    `pair_curves`), `submitters` maps an entry's id to its submitter's token. A submitter's runs under one
+    algorithm name share an algorithm (another submitter's runs under the same name never join it: the algorithm is
+    then named with its submitter's number); a self-reported run never joins a server-evaluated one. A run without
+    per-pair curves (stored before the service kept them) is left out. Cached by the entries' ids."""
+    key = _grouped_key(suite, (e.id for e in entries), rank_uploads)
+    with _GROUPED_LOCK:
+        if key in _GROUPED:
+            return _GROUPED[key]
+    grouped = _group(suite, entries, submitters, rank_uploads)
+    with _GROUPED_LOCK:
+        while len(_GROUPED) >= _GROUPED_KEPT:
+            _GROUPED.pop(next(iter(_GROUPED)))
+        _GROUPED[key] = grouped
+    return grouped
+
+
+def board_algorithms(session: Session, settings: Settings, name: str, suite: Suite) -> BoardAlgorithms | None:
+    """`grouped_runs` of a board, read from the database: its entries' ids first (the cache's key; the board's
+    page has usually grouped them just before), then, only if they are not cached, the columns the grouping reads
+    (never the stored scores or rows)."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import BoardEntry, Submission
+
+    ids = session.scalars(select(BoardEntry.id).where(BoardEntry.board == name)).all()
+    key = _grouped_key(suite, ids, settings.rank_uploads)
+    with _GROUPED_LOCK:
+        if key in _GROUPED:
+            return _GROUPED[key]
+    found = session.execute(select(BoardEntry.id, BoardEntry.agent_name, BoardEntry.algorithm, BoardEntry.source,
+                                   BoardEntry.privileged, BoardEntry.pair_curves, Submission.token_id)
+                            .join(Submission, Submission.id == BoardEntry.submission_id)
+                            .where(BoardEntry.board == name)).all()
+    return grouped_runs(suite, found, {e.id: e.token_id for e in found}, settings.rank_uploads)
+
+
+def _group(suite: Suite, entries: list[Any], submitters: dict[int, int],
+           rank_uploads: bool) -> BoardAlgorithms | None:
+    """grouped_runs, computed."""
     from mewa_bench.leaderboard.algorithms import rows_of
     from mewa_bench.protocol.aggregate import Run, aggregate
     from mewa_bench.protocol.scoring import reference_line_cells
@@ -162,12 +221,9 @@ def _algorithm_table(suite: Suite, entries: list[Any], submitters: dict[int, int
         sources[name] = e.source
         runs.append(Run(name=f"{e.agent_name} #{e.id}", algorithm=name, curves=np.array(json.loads(e.pair_curves))))
     if not runs:
-        return []
+        return None
     comparison = aggregate(runs, reference_line_cells(suite), pairwise=False)
-    table = []
-    for row in rows_of(suite, comparison, privileged, frozenset(unranked)):
-        table.append({**dataclasses.asdict(row), "source": sources[row.algorithm]})
-    return table
+    return BoardAlgorithms(comparison, rows_of(suite, comparison, privileged, frozenset(unranked)), sources)
 
 
 def boards_index(session: Session, settings: Settings) -> list[dict[str, Any]]:

@@ -1,4 +1,5 @@
-"""A board's page: what the suite is, the adaptation-curve figure, and the ranked table.
+"""A board's page: what the suite is, the algorithms table, the adaptation-curve figure (one line per
+algorithm) and the ranked table of checkpoints.
 
 The table has the static leaderboard's columns and cells (`leaderboard.render.cells`); each agent
 links to its submission's status page. Every row carries its kind, rank and exact mean score as
@@ -67,7 +68,8 @@ def algorithm_row(content: dict[str, Any]) -> AlgorithmRow:
 
 
 def algorithms_html(board: dict[str, Any]) -> str:
-    """The algorithms table (the static boards' cells), each row with its source; empty when there is no run."""
+    """The algorithms table (the static boards' cells), each row with its source; empty when there is no run (and
+    on a hidden board)."""
     if not board.get("algorithms"):
         return ""
     source_at = algorithm_tables.HEADER.index("algorithm")
@@ -85,8 +87,7 @@ def algorithms_html(board: dict[str, Any]) -> str:
         rows.append(f'<tr class="{kind}" data-algorithm="{esc(row.algorithm)}" data-runs="{row.runs}">'
                     + "".join(tds) + "</tr>")
     return (f'<h2>Algorithms</h2><table id="algorithms"><thead><tr>{head}</tr></thead><tbody>\n'
-            + "\n".join(rows) + f'\n</tbody></table><p class="muted">{esc(algorithm_tables.EXPLANATION)}</p>'
-            f"<h2>Checkpoints</h2><p class=\"muted\">{esc(CHECKPOINTS)}</p>")
+            + "\n".join(rows) + f'\n</tbody></table><p class="muted">{esc(algorithm_tables.EXPLANATION)}</p>')
 
 
 def _facts(board: dict[str, Any]) -> str:
@@ -105,30 +106,43 @@ def _facts(board: dict[str, Any]) -> str:
             f'As JSON: <a href="/api/leaderboards/{name}">/api/leaderboards/{name}</a>.</p>')
 
 
-def _figure(board: dict[str, Any], figure_version: str | None, plotted: int) -> str:
-    """The figure, or why there is none."""
+def counted(n: int, noun: str) -> str:
+    """`1 algorithm`, `4 runs`."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
+def _figure(board: dict[str, Any], figure_version: str | None, plotted: int, drawn: tuple[int, int]) -> str:
+    """The figure, or why there is none; `drawn`: the (algorithms, runs) it is drawn from."""
     name = esc(board["board"])
     if figure_version is None:
         return ('<p class="muted">No figure yet: the server has not generated this hidden suite (no agent was '
                 "evaluated on it).</p>")
-    agents = board["entries"]
-    shown = f"the {plotted} best of {entries_text(agents)}" if agents > plotted else entries_text(agents)
+    algorithms, runs = drawn
+    shown = (f"the {plotted} best of {counted(algorithms, 'algorithm')}" if algorithms > plotted
+             else counted(algorithms, "algorithm"))
+    caption = ("Adaptation curves: no run to draw yet, only the suite's exact reference lines (dashed)." if not runs
+               else f"Adaptation curves: mean score s_k of episode k with the same hidden worker, per algorithm "
+                    f"({shown}, from {counted(runs, 'run')}: a submitter's runs under one algorithm name; bands: 95% "
+                    f"CI over training runs, none for a one-run algorithm), and the suite's exact reference lines "
+                    f"(dashed).")
     return (f'<figure><img id="curves" src="/leaderboards/{name}/curves.png?v={esc(figure_version)}" '
-            f'alt="Adaptation curves on {name}: score s_k per episode k for each agent, with the reference lines" '
-            f'width="900"><figcaption>Adaptation curves: mean score s_k of episode k with the same hidden worker, per '
-            f"agent ({shown}; bands: 95% CI over pairs x seeds), and the suite's exact reference lines (dashed)."
-            f"</figcaption></figure>")
+            f'alt="Adaptation curves on {name}: score s_k per episode k for each algorithm, with the reference lines" '
+            f'width="900"><figcaption>{esc(caption)}</figcaption></figure>')
 
 
-def board_html(board: dict[str, Any], figure_version: str | None, plotted: int) -> str:
-    """The whole page of a board (the JSON of /api/leaderboards/<board>)."""
+def board_html(board: dict[str, Any], figure_version: str | None, plotted: int,
+               drawn: tuple[int, int] = (0, 0)) -> str:
+    """The whole page of a board (the JSON of /api/leaderboards/<board>): the algorithms table (public boards),
+    the figure (one line per algorithm, `drawn`: from how many algorithms and runs), then the checkpoints' table."""
     head = "".join(f"<th>{esc(h)}</th>" + ("<th>source</th>" if h == "agent" else "") for h in HEADER)
     rows = "\n".join(table_row(r) for r in board["rows"])
     notes = "".join(f"<li>{esc(n)}</li>" for n in NOTES)
     terms = "".join(f"<dt>{esc(t)}</dt><dd>{esc(text)}</dd>" for t, text in EXPLANATION)
     kind = "hidden" if board["hidden"] else "public"
+    algorithms = algorithms_html(board)
+    checkpoints = f'<h2>Checkpoints</h2><p class="muted">{esc(CHECKPOINTS)}</p>' if algorithms else ""
     body = (f'<div id="board" data-board="{esc(board["board"])}" data-kind="{kind}">{_facts(board)}'
-            f"{_figure(board, figure_version, plotted)}\n{algorithms_html(board)}"
+            f"{algorithms}{_figure(board, figure_version, plotted, drawn)}\n{checkpoints}"
             f'<table id="ranking"><thead><tr>{head}</tr></thead><tbody>\n{rows}\n</tbody></table>\n'
             f'<p class="muted">Sources: {"; ".join(esc(t) for t in SOURCES.values())}. Self-reported rows are '
             f"{'ranked' if board.get('uploads_ranked') else 'unranked'} on this server.</p>"

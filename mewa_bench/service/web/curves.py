@@ -1,31 +1,35 @@
-"""The adaptation-curve figure of a board, drawn by the static leaderboard's `plot_curves`.
+"""The adaptation-curve figure of a board, drawn by the static leaderboard's `curves_figure`: one line per algorithm.
 
-The board's entries come from the database (their scores as the workers stored them, the very
-dict `mewa-bench evaluate` writes), best first; at most PLOTTED of them are drawn so that the
-legend stays readable. Entries are written once and never change, so a figure is cached under
-the board's entry count and newest entry id.
+The algorithms are the board's algorithms table's (`boards.board_algorithms`: a submitter's runs
+under one algorithm name, from their stored per-pair curves), each drawn with its 95% CI band over
+training runs, as the static boards draw theirs; at most PLOTTED of them, best mean first, so that
+the legend stays readable. A hidden board's figure draws its algorithms too, though its page has no
+algorithms table: that table's cells include fractions of (run, pair) cells, which would tell the
+hidden suite's number of pairs; the figure's curves and bands are means over pairs and over resampled
+runs, which do not. Entries are written once and never change, so a figure is cached under the
+board's entry count and newest entry id.
 """
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import tempfile
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from mewa_bench.design.suites import Suite, load_suite
 from mewa_bench.leaderboard.board import Board
-from mewa_bench.leaderboard.validate import Entry
-from mewa_bench.protocol.scoring import Comparison, Estimate, Scores
+from mewa_bench.service import boards
 from mewa_bench.service.settings import Settings
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
     from sqlalchemy.orm import Session
 
-PLOTTED = 10  # agents drawn, best mean first
+PLOTTED = 10  # algorithms drawn, best mean first
 CACHED_FIGURES = 32
 
 
@@ -38,25 +42,6 @@ class BoardVersion:
     entries: int
     newest: int | None
     suite_sha256: str
-
-
-def _estimate(d: dict[str, Any]) -> Estimate:
-    return Estimate(d["mean"], d["low"], d["high"])
-
-
-def scores_from_dict(d: dict[str, Any]) -> Scores:
-    """`Scores` back from its `to_dict()` form (the stored scores of a board entry)."""
-    comparisons = {k: Comparison(_estimate(c["difference"]), None if c.get("probability_of_improvement") is None
-                                 else _estimate(c["probability_of_improvement"]))
-                   for k, c in d["comparisons"].items()}
-    return Scores(curve=tuple(_estimate(p) for p in d["curve"]), mean=_estimate(d["mean"]), iqm=_estimate(d["iqm"]),
-                  adaptability=_estimate(d["adaptability"]), skill=_estimate(d["skill"]), raw=d["raw"],
-                  comparisons=comparisons, units=d["units"], control_variates=d["control_variates"])
-
-
-def plain_label(name: str) -> str:
-    """A submitted name as literal text in a matplotlib legend ("$...$" would otherwise be parsed as math)."""
-    return name.replace("$", r"\$")
 
 
 def board_suite(settings: Settings, board: str, hidden: bool) -> Suite | None:
@@ -78,34 +63,37 @@ def board_version(session: Session, settings: Settings, board: str, suite: Suite
     return BoardVersion(settings.database_url, board, count, newest, suite.sha256)
 
 
-def board_entries(session: Session, board: str, limit: int) -> list[Entry]:
-    """The board's best `limit` entries as leaderboard entries, ordered as the board ranks them."""
-    from sqlalchemy import select
-
-    from mewa_bench.service.models import BoardEntry, Job
-
-    rows = session.execute(select(BoardEntry, Job.seeds).join(Job, Job.id == BoardEntry.job_id)
-                           .where(BoardEntry.board == board)
-                           .order_by(BoardEntry.mean.desc(), BoardEntry.agent_name, BoardEntry.id).limit(limit)).all()
-    entries = []
-    for e, seeds in rows:
-        row = json.loads(e.row)
-        entries.append(Entry(suite=board, agent=plain_label(e.agent_name),
-                             path=Path(str(e.submission_id)) / "results.json", privileged=e.privileged,
-                             scores=scores_from_dict(json.loads(e.scores)), seeds=tuple(json.loads(seeds)),
-                             date=row.get("date", ""), package_version=row.get("package_version", ""),
-                             agent_sha256=e.agent_sha256))
-    return entries
+def figure_board(suite: Suite, grouped: boards.BoardAlgorithms | None, plotted: int = PLOTTED) -> Board:
+    """The leaderboard `Board` the static boards' figure is drawn from: the `plotted` best algorithms of the
+    board's algorithms table (none: only the suite's reference lines)."""
+    if grouped is None:
+        return Board(suite, (), (), None)  # no entry with per-pair curves: nothing to draw but the reference lines
+    shown = grouped.comparison.algorithms[:plotted]
+    return Board(suite, (), (), dataclasses.replace(grouped.comparison, algorithms=shown), grouped.rows[:plotted])
 
 
-def render_png(suite: Suite, entries: list[Entry]) -> bytes:
-    """The figure `mewa-bench leaderboard` draws, for these entries, as PNG bytes."""
+def board_curves(session: Session, settings: Settings, board: str, suite: Suite) -> Figure:
+    """The figure of a board, as a matplotlib Figure (`curves_figure` of the static boards)."""
+    from mewa_bench.leaderboard.plot import curves_figure
+
+    return curves_figure(figure_board(suite, boards.board_algorithms(session, settings, board, suite)))
+
+
+def render_png(board: Board) -> bytes:
+    """The figure `mewa-bench leaderboard` draws for this board, as PNG bytes."""
     from mewa_bench.leaderboard.plot import plot_curves
 
     with tempfile.TemporaryDirectory(prefix="mewa-curves-") as tmp:
         path = Path(tmp) / "curves.png"
-        plot_curves(Board(suite, tuple(entries), ()), path)
+        plot_curves(board, path)
         return path.read_bytes()
+
+
+def drawn_from(grouped: boards.BoardAlgorithms | None) -> tuple[int, int]:
+    """(algorithms, runs) a board's figure is drawn from (before the PLOTTED best are kept)."""
+    if grouped is None:
+        return 0, 0
+    return len(grouped.comparison.algorithms), sum(len(a.runs) for a in grouped.comparison.algorithms)
 
 
 class FigureCache:
@@ -131,10 +119,10 @@ class FigureCache:
 FIGURES = FigureCache()
 
 
-def board_figure(session: Session, key: BoardVersion, suite: Suite) -> bytes:
+def board_figure(session: Session, settings: Settings, key: BoardVersion, suite: Suite) -> bytes:
     """The PNG of a board at version `key` (drawn once per version)."""
     png = FIGURES.get(key)
     if png is None:
-        png = render_png(suite, board_entries(session, key.board, PLOTTED))
+        png = render_png(figure_board(suite, boards.board_algorithms(session, settings, key.board, suite)))
         FIGURES.put(key, png)
     return png

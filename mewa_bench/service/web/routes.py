@@ -36,17 +36,19 @@ def leaderboard_page(name: str, request: Request, db=Depends(session)) -> HTMLRe
     if content is None:
         return HTMLResponse(layout.not_found_page(f"Leaderboard {name!r}"), status_code=404)
     suite = curves.board_suite(settings, name, content["hidden"])
-    version = None
+    version, drawn = None, (0, 0)
     if suite is not None:
         key = curves.board_version(db, settings, name, suite)
         version = f"{key.entries}-{key.newest or 0}"
-    return HTMLResponse(board_page.board_html(content, version, curves.PLOTTED))
+        drawn = curves.drawn_from(boards.board_algorithms(db, settings, name, suite))  # cached: the figure's too
+    return HTMLResponse(board_page.board_html(content, version, curves.PLOTTED, drawn))
 
 
 @router.get("/leaderboards/{name}/curves.png", response_class=Response, summary="A board's adaptation curves (PNG)",
             responses={200: {"content": {"image/png": {}}}})
 def leaderboard_figure(name: str, request: Request, db=Depends(session)) -> Response:
-    """The figure of `mewa-bench leaderboard`: s_k per agent (the 10 best) and the suite's reference lines."""
+    """The figure of `mewa-bench leaderboard`: s_k per algorithm (the 10 best) with its band over training runs,
+    and the suite's reference lines."""
     settings = settings_of(request)
     hidden = dict(boards.board_names(settings)).get(name)
     if hidden is None:
@@ -60,7 +62,7 @@ def leaderboard_figure(name: str, request: Request, db=Depends(session)) -> Resp
     headers = {"Cache-Control": "no-cache", "ETag": etag}  # the browser asks again, and gets a 304 if nothing changed
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers=headers)
-    return Response(curves.board_figure(db, key, suite), media_type="image/png", headers=headers)
+    return Response(curves.board_figure(db, settings, key, suite), media_type="image/png", headers=headers)
 
 
 @router.get("/submissions/{submission_id}", response_class=HTMLResponse, summary="A submission's page")
