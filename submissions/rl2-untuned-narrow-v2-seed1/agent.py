@@ -1,6 +1,6 @@
-"""RL^2 agent trained by `mewa-bench train rl2 --suite narrow-v2 --seed 1 --steps 4000000 --out submissions/rl2-narrow-v2-seed1`; plays the checkpoint beside this file.
+"""RL^2 agent trained by `mewa-bench train rl2 --suite narrow-v2 --seed 1 --steps 4000000 --out submissions/rl2-narrow-v2-seed1` (default settings; renamed rl2-untuned-narrow-v2-seed1); plays the checkpoint beside this file.
 
-Evaluate it: `mewa-bench evaluate submissions/rl2-narrow-v2-seed1/agent.py --suite narrow-v2`.
+Evaluate it: `mewa-bench evaluate submissions/rl2-untuned-narrow-v2-seed1/agent.py --suite narrow-v2`.
 """
 
 from pathlib import Path
