@@ -108,7 +108,9 @@ def test_resume_continues_from_the_last_checkpoint(tmp_path: Path) -> None:
     dpt.train(settings, out, data=data)
     with (out / dpt.METRICS).open("a") as f:  # an update that finished after the last checkpoint: redone on resume
         f.write("3,48,0.1,1.0,0.5\r\n")
-    dpt.train(replace(settings, total_steps=4 * 16, d_model=32), out, resume=True, data=data)
+    with pytest.raises(ValueError, match=r"d_model=32 \(the run has 16\)"):
+        dpt.train(replace(settings, total_steps=4 * 16, d_model=32), out, resume=True, data=data)
+    dpt.train(replace(settings, total_steps=4 * 16), out, resume=True, data=data)
     with (out / dpt.METRICS).open() as f:
         assert [int(r["update"]) for r in csv.DictReader(f)] == [1, 2, 3, 4]
     state = torch.load(out / dpt.CHECKPOINT, weights_only=False)

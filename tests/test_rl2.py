@@ -64,13 +64,18 @@ def test_resume_continues_from_the_last_checkpoint(tmp_path: Path) -> None:
 
 
 def test_a_resumed_run_keeps_its_own_settings(tmp_path: Path) -> None:
-    """Only the length of a run may change on resume: its network is the checkpoint's, whatever else is given."""
+    """Only the length of a run may change on resume; other settings are refused, naming them, and nothing of the
+    run is touched (its metrics rows after the checkpoint are only dropped once the checkpoint has loaded)."""
     out = tmp_path / "run"
     train(tiny(), out)
-    train(tiny(total_steps=4 * 8 * 16, hidden=32, learning_rate=0.5), out, resume=True)
-    state = torch.load(out / CHECKPOINT, weights_only=False)
-    assert state["update"] == 4
-    assert (state["settings"]["hidden"], state["settings"]["learning_rate"]) == (16, tiny().learning_rate)
+    with (out / METRICS).open("a") as f:
+        f.write("4,512,0.1,nan,nan,0.0,0.0,1.0\r\n")
+    before = (out / METRICS).read_bytes(), (out / CHECKPOINT).read_bytes()
+    with pytest.raises(ValueError, match=r"hidden=32 \(the run has 16\), learning_rate=0\.5 \(the run has 0\.001\)"):
+        train(tiny(total_steps=4 * 8 * 16, hidden=32, learning_rate=0.5), out, resume=True)
+    assert ((out / METRICS).read_bytes(), (out / CHECKPOINT).read_bytes()) == before
+    train(tiny(total_steps=4 * 8 * 16), out, resume=True)
+    assert torch.load(out / CHECKPOINT, weights_only=False)["update"] == 4
 
 
 def test_gae_by_hand() -> None:

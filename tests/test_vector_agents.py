@@ -103,7 +103,8 @@ def test_a_hanging_dying_or_bloated_vector_agent_is_stopped_and_named(tmp_path: 
         run(tmp_path, "run.json", **args)
     text = str(caught.value)
     assert caught.value.kind == kind and re.search(message, text, re.DOTALL), text
-    assert re.search(r"agent \S*vector_agent\.py, pair \d+, seed \d, episode \d, step \d+", text), text
+    assert re.search(r"agent \S*vector_agent\.py, pair \d+, seed \d, episode \d, step \d+"
+                     + (r" \(the first of a batch of 2 lanes\)" if fault == "crash" else ":"), text), text
     assert 1 <= len(read_results(tmp_path / "run.json")["units"]) < 6
 
 

@@ -228,11 +228,11 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Sequences |
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
-    settings, state = resumed(out, settings, resume)
+    state = resumed(out, settings, resume)
     model = make_model(settings)
     optimizer = torch.optim.AdamW(model.parameters(), lr=settings.learning_rate, weight_decay=settings.weight_decay)
-    start_update = 0 if state is None else restore(state, model, {"optimizer": optimizer})
-    if data is None:  # the run's own dataset (a resumed run's, from its checkpoint)
+    start_update = 0 if state is None else restore(out, state, model, {"optimizer": optimizer})
+    if data is None:  # the run's own dataset
         if not settings.dataset:
             raise ValueError("DPT learns from a training dataset: give --dataset (a folder that `mewa-bench datasets "
                              "build NAME` wrote)")

@@ -209,11 +209,11 @@ def train(settings: Settings, out: Path, resume: bool = False,
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
-    settings, state = resumed(out, settings, resume)
+    state = resumed(out, settings, resume)
     model = make_model(settings)
     optimizer = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings.learning_rate,
                                  eps=1e-5)
-    start_update = 0 if state is None else restore(state, model, {"optimizer": optimizer})
+    start_update = 0 if state is None else restore(out, state, model, {"optimizer": optimizer})
     generator = torch.Generator().manual_seed(settings.seed * 1_000_003 + start_update)
     env = make_meta_env(settings.suite, settings.num_envs, settings.episodes, settings.workers)
     obs_np, _ = env.reset(seed=settings.seed + start_update)

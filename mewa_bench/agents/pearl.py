@@ -310,11 +310,10 @@ def train(settings: Settings, out: Path, resume: bool = False,
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
-    settings, state = resumed(out, settings, resume)
+    state = resumed(out, settings, resume)
     model = make_model(settings)
     optimizers = make_optimizers(model, settings)
-    # its optimizers' states are kept by name under "optimizers"
-    start_update = 0 if state is None else restore(state | state["optimizers"], model, optimizers)
+    start_update = 0 if state is None else restore(out, state, model, optimizers, state["optimizers"])
     generator = torch.Generator().manual_seed(settings.seed * 1_000_003 + start_update)
     rng = np.random.default_rng([settings.seed, start_update])
     env = make_meta_env(settings.suite, settings.num_envs, settings.episodes, settings.workers)

@@ -216,25 +216,36 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     return torch.load(path, weights_only=False)
 
 
-def resumed(out: Path, settings: S, resume: bool) -> tuple[S, dict[str, Any] | None]:
-    """The settings a run trains with and, when it resumes from `out`'s checkpoint, that checkpoint's state.
+def resumed(out: Path, settings: S, resume: bool) -> dict[str, Any] | None:
+    """The state of `out`'s checkpoint when the run resumes from it (None for a fresh run).
 
-    A resumed run keeps its own settings (only its length may change, to train on from a finished run),
-    and the metrics rows written after its checkpoint are dropped: they will be redone.
+    A resumed run keeps its own settings; only its length may change (to train on from a finished
+    run). Other settings than the checkpoint's are a ValueError naming them, so that the run folder's
+    README, agent.py and run.json, written from the settings given, always describe the run.
     """
     path = Path(out) / CHECKPOINT
     if not (resume and path.exists()):
-        return settings, None
+        return None
     state = load_checkpoint(path)
-    keep_metrics_until(Path(out) / METRICS, state["update"])
-    return type(settings)(**{**state["settings"], "total_steps": settings.total_steps}), state
+    saved = type(settings)(**state["settings"])
+    changed = [f.name for f in fields(saved)
+               if f.name != "total_steps" and getattr(saved, f.name) != getattr(settings, f.name)]
+    if changed:
+        given = ", ".join(f"{name}={getattr(settings, name)!r} (the run has {getattr(saved, name)!r})" for name in changed)
+        raise ValueError(f"{path}: a resumed run keeps its own settings, only the number of steps may change; this "
+                         f"one was given {given}. Re-run the command that started it, with --resume.")
+    return state
 
 
-def restore(state: dict[str, Any], model: Any, optimizers: dict[str, Any]) -> int:
-    """A checkpoint's weights into `model` and each optimizer's state from `state[key]`; the update to go on from."""
+def restore(out: Path, state: dict[str, Any], model: Any, optimizers: dict[str, Any],
+            optimizer_states: dict[str, Any] | None = None) -> int:
+    """A checkpoint's weights into `model` and each optimizer's state (from `optimizer_states`, default the checkpoint
+    itself, by key); then the metrics rows written after the checkpoint are dropped (they will be redone). The update
+    to go on from."""
     model.load_state_dict(state["model"])
     for key, optimizer in optimizers.items():
-        optimizer.load_state_dict(state[key])
+        optimizer.load_state_dict((state if optimizer_states is None else optimizer_states)[key])
+    keep_metrics_until(Path(out) / METRICS, state["update"])
     return int(state["update"])
 
 

@@ -301,12 +301,12 @@ def train(settings: Settings, out: Path, resume: bool = False,
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
-    settings, state = resumed(out, settings, resume)
+    state = resumed(out, settings, resume)
     model = make_model(settings)
     policy_optimizer = torch.optim.Adam(model.policy_parameters(), lr=settings.learning_rate, eps=1e-5)
     vae_optimizer = torch.optim.Adam(model.vae_parameters(), lr=settings.vae_learning_rate)
     start_update = 0 if state is None else restore(
-        state, model, {"policy_optimizer": policy_optimizer, "vae_optimizer": vae_optimizer})
+        out, state, model, {"policy_optimizer": policy_optimizer, "vae_optimizer": vae_optimizer})
     generator = torch.Generator().manual_seed(settings.seed * 1_000_003 + start_update)
     env = make_env(settings)
     n, t_len, d = settings.num_envs, settings.num_steps, settings.latent

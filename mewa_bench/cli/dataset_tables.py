@@ -51,14 +51,14 @@ def buildable_table(specs: dict[str, Any], content: dict[str, Any], width: int =
     for name, spec in sorted(specs.items()):
         record = builds.get((name, spec.version))
         rows.append((name, spec.version, spec.suite, spec.tier, f"{spec.frames:,}",
-                     record["sha256"][:12] + "…" if record else ""))
+                     (record["sha256"][:16] if width >= WIDE else record["sha256"][:12]) + "…" if record else ""))
     return _table("Training datasets built on demand: mewa-bench datasets build NAME", columns, rows, width)
 
 
 def evaluation_table(content: dict[str, Any], width: int = WIDE) -> Table:
     """The catalog's recordings of the curated test pairs (viewing only)."""
     columns = [("name", False), ("version", False), ("suite", True), ("policy", True), ("episodes", False),
-               ("frames", False), ("size", False), ("source", True)]
+               ("frames", False), ("size", True), ("source", True)]
     rows = [(e["name"], e["version"], e["suite"], e["policy"], f"{e['episodes']:,}", f"{e['frames']:,}", _size(e),
              _source(e)) for e in content.get("evaluation_recordings", [])]
     return _table("Evaluation recordings (curated TEST pairs, protocol seeds): for viewing only, never train on these",

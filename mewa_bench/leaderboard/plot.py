@@ -28,10 +28,10 @@ def _palette() -> tuple[tuple[float, float, float], ...]:
 
 
 def line_style(i: int) -> tuple[tuple[float, float, float], str]:
-    """(colour, line style) of the i-th algorithm: the first 18 have a colour each (solid, then dashed past 10);
-    no two of the first 72 share both."""
+    """(colour, line style) of the i-th algorithm: the first 18 solid, a colour each; then the colours again, dashed,
+    and so on: no two of the first 72 share both."""
     palette = _palette()
-    return palette[i % len(palette)], _LINE_STYLES[(i // 10) % len(_LINE_STYLES)]
+    return palette[i % len(palette)], _LINE_STYLES[(i // len(palette)) % len(_LINE_STYLES)]
 
 
 def curves_figure(board: Board):

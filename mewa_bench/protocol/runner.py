@@ -157,10 +157,11 @@ class _LanePlayer:
                 if e.index is not None and e.index < len(lanes):
                     _, failed, _, pair, seed = active[lanes[e.index]]
                     where = describe(failed, c.agent_path, pair, seed)
-                else:  # the whole batch failed (the process died, ran out of memory): where its first lane was
+                else:  # the whole batch failed (the process died, ran out of memory): where its lanes were
                     _, first, _, pair, seed = active[lanes[0]]
-                    others = f" (and {len(lanes) - 1} more lanes in the same batch)" if len(lanes) > 1 else ""
-                    where = describe(first, c.agent_path, pair, seed) + others
+                    where = describe(first, c.agent_path, pair, seed)
+                    if len(lanes) > 1:
+                        where = f"{where} (the first of a batch of {len(lanes)} lanes)"
                 raise EvaluationError(e.kind, f"{where}: {e}") from None
             for lane, reply in zip(lanes, replies):
                 calls, _, started, pair, seed = active[lane]

@@ -79,13 +79,13 @@ def board_curves(session: Session, settings: Settings, board: str, suite: Suite)
     return curves_figure(figure_board(suite, boards.board_algorithms(session, settings, board, suite)))
 
 
-def render_png(board: Board) -> bytes:
-    """The figure `mewa-bench leaderboard` draws for this board, as PNG bytes."""
-    from mewa_bench.leaderboard.plot import plot_curves
+def render_png(figure: Figure) -> bytes:
+    """A figure as the PNG bytes `mewa-bench leaderboard` would write."""
+    from mewa_bench.reports.figures import save_png
 
     with tempfile.TemporaryDirectory(prefix="mewa-curves-") as tmp:
         path = Path(tmp) / "curves.png"
-        plot_curves(board, path)
+        save_png(figure, path)
         return path.read_bytes()
 
 
@@ -123,6 +123,6 @@ def board_figure(session: Session, settings: Settings, key: BoardVersion, suite:
     """The PNG of a board at version `key` (drawn once per version)."""
     png = FIGURES.get(key)
     if png is None:
-        png = render_png(figure_board(suite, boards.board_algorithms(session, settings, key.board, suite)))
+        png = render_png(board_curves(session, settings, key.board, suite))
         FIGURES.put(key, png)
     return png
