@@ -149,3 +149,16 @@ def test_a_vector_agent_on_ray_gives_the_one_lane_local_results(tmp_path: Path) 
     local, _ = evaluate(replace(config(tmp_path, "local.json", agent=vector, **args), lanes=1))
     assert stable_view(on_ray)["units"] == stable_view(local)["units"]
     assert len(on_ray["units"]) == 12
+
+
+def test_a_training_dataset_built_on_ray_has_the_local_bytes(tmp_path: Path) -> None:
+    """The expert tier (its play and the exact values as Ray tasks) gives byte-identical files to a one-process build."""
+    from mewa_bench.datasets.training_data import build_training_dataset, ray_tasks, training_spec
+
+    spec = replace(training_spec("narrow-v2-train-expert", 1), meta_batch=6)
+    build_training_dataset(spec, tmp_path / "ray", jobs=2, map_tasks=ray_tasks)
+    build_training_dataset(spec, tmp_path / "local", jobs=1)
+    files = sorted(p.relative_to(tmp_path / "local") for p in (tmp_path / "local").rglob("*") if p.is_file())
+    assert any(f.suffix == ".parquet" for f in files)
+    for name in files:
+        assert (tmp_path / "ray" / name).read_bytes() == (tmp_path / "local" / name).read_bytes(), name

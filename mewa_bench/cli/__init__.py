@@ -678,14 +678,27 @@ def datasets_build(name: str = typer.Argument(..., metavar="NAME", help="A train
                                                                          "(`datasets list` shows them all)."),
                    out: Path = typer.Option(Path("mewa-datasets"), "--out", help="Folder for the dataset and its archive."),
                    frames: int = typer.Option(None, min=1, help="Frame target (default: the dataset's, 1,000,000)."),
-                   jobs: int = typer.Option(2, min=1, help="Processes for the exact labels and values (and the expert)."),
-                   catalog: Path = typer.Option(None, help="Catalog to record the archive in (default: <out>/index.json).")) -> None:
+                   jobs: int = typer.Option(2, min=1, help="Processes for the exact labels and values (and the expert); "
+                                                           "with --ray, the expert plays --jobs x 4 Ray tasks per round."),
+                   catalog: Path = typer.Option(None, help="Catalog to record the archive in (default: <out>/index.json)."),
+                   ray: bool = typer.Option(False, "--ray", metavar="", help="The same work as Ray tasks on a local Ray "
+                                            "instance (needs the ray extra); the same bytes."),
+                   address: str = typer.Option(None, "--ray-address", metavar="ADDR", help="The same on the Ray cluster at "
+                                               "this address (e.g. 10.0.0.5:6379 or auto), where it pays: the expert "
+                                               "tier's play spreads over the cluster's CPUs.")) -> None:
     """Build a training dataset (meta-train workers only, exact optimal labels) deterministically, pack it and
     record its sha256 in a catalog."""
-    from mewa_bench.datasets.build import build_named
+    from contextlib import nullcontext
 
-    with console.status(f"building {name}"):
-        result = _or_exit(lambda: build_named(name, out, frames, jobs, catalog))
+    from mewa_bench.datasets.build import build_named
+    from mewa_bench.datasets.training_data import ray_tasks
+
+    where = _ray_option(ray, address)
+    if where is not None:
+        from mewa_bench.protocol.ray_backend import session
+    with console.status(f"building {name}" + (" on Ray" if where else "")), \
+            (session(where) if where is not None else nullcontext()):
+        result = _or_exit(lambda: build_named(name, out, frames, jobs, catalog, ray_tasks if where else None))
     e = result.entry
     console.print(f"[green]ok[/green] {result.root} ({e['frames']:,} frames, {e['episodes']:,} episodes, "
                   f"{e['frames'] / result.build_seconds:,.0f} frames/s: built in {result.build_seconds:.1f} s, packed in "

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from mewa_bench.datasets.expert_rollout import MapTasks
 from mewa_bench.datasets.catalog import DatasetError, add_to_catalog, default_catalog_path, load_catalog, recorded_build
 from mewa_bench.datasets.pack import pack_dataset
 from mewa_bench.datasets.training_data import TrainingSpec, build_training_dataset, training_spec
@@ -46,8 +47,9 @@ def behaviour_name(spec: TrainingSpec) -> str:
 
 
 def build_named(name: str, out_dir: Path | str, frames: int | None = None, jobs: int = 2,
-                catalog: Path | str | None = None) -> BuildResult:
-    """Build, pack and catalog the training dataset `name` under `out_dir`."""
+                catalog: Path | str | None = None, map_tasks: MapTasks | None = None) -> BuildResult:
+    """Build, pack and catalog the training dataset `name` under `out_dir` (its parallel work in `jobs` processes, or
+    as `map_tasks`, e.g. `training_data.ray_tasks`)."""
     spec = training_spec(name, frames)
     out_dir = Path(out_dir)
     root = out_dir / spec.name
@@ -55,7 +57,7 @@ def build_named(name: str, out_dir: Path | str, frames: int | None = None, jobs:
     if catalog_path.exists():
         load_catalog(catalog_path)  # a broken catalog fails before the build
     start = time.perf_counter()
-    build_training_dataset(spec, root, jobs)
+    build_training_dataset(spec, root, jobs, map_tasks=map_tasks)
     built = time.perf_counter()
     entry = pack_dataset(root, out_dir, spec.name, spec.version, spec.suite, behaviour_name(spec),
                          catalog_dir=catalog_path.parent)

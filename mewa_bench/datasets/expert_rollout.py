@@ -13,6 +13,7 @@ import hashlib
 import importlib.util
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,9 @@ from mewa_bench.game.task import Task
 
 REPO = Path(__file__).resolve().parents[2]
 EXPERT_AGENT = REPO / "submissions" / "bayes-explorer" / "agent.py"
+
+
+MapTasks = Callable[[Callable[..., Any], list[tuple]], list]  # a function over argument tuples, results in order
 
 
 def agent_sha256(path: Path) -> str:
@@ -90,15 +94,16 @@ def play_expert(path: Path, suite: str, tasks: tuple[Task, ...], task_idx: np.nd
 
 
 def play_expert_parallel(path: Path, suite: str, tasks: tuple[Task, ...], task_idx: np.ndarray, workers: np.ndarray,
-                         keys: np.ndarray, seeds: np.ndarray, jobs: int = 1) -> Played:
-    """`play_expert` over chunks of meta-episodes in `jobs` processes (the same frames for any `jobs`)."""
+                         keys: np.ndarray, seeds: np.ndarray, jobs: int = 1, map_tasks: MapTasks | None = None) -> Played:
+    """`play_expert` over `jobs` x 4 chunks of meta-episodes, in `jobs` processes or as `map_tasks` (the same frames
+    for any `jobs` and either way: each meta-episode depends only on its worker, luck keys and seed)."""
     from mewa_bench.datasets.chain_rollout import concat_played
 
-    if jobs <= 1 or len(keys) < 2:
+    if map_tasks is None and (jobs <= 1 or len(keys) < 2):
         return play_expert(path, suite, tasks, task_idx, workers, keys, seeds)
     chunks = np.array_split(np.arange(len(keys)), min(jobs * 4, len(keys)))
-    parts = list(_pool(jobs).map(play_expert, *zip(*[(path, suite, tasks, task_idx[c], workers[c], keys[c], seeds[c])
-                                                     for c in chunks])))
+    args = [(path, suite, tasks, task_idx[c], workers[c], keys[c], seeds[c]) for c in chunks]
+    parts = map_tasks(play_expert, args) if map_tasks is not None else list(_pool(jobs).map(play_expert, *zip(*args)))
     return concat_played(parts)
 
 

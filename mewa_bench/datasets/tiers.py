@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,9 @@ from mewa_bench.datasets.chain_rollout import Played, play_chain
 from mewa_bench.design.policies import RANDOM, RANDOM_TASK_SPECIFIC, policy_from_name, toptimal_family
 from mewa_bench.design.replay import replay_chain
 from mewa_bench.game.task import Task
+
+if TYPE_CHECKING:
+    from mewa_bench.datasets.expert_rollout import MapTasks
 
 TIERS = ("random", "random-task-specific", "expert", "learning-histories")
 PROTOCOL_EPISODES = 10
@@ -96,7 +100,7 @@ def file_sha256(path: Path) -> str:
 
 def play_tier(tier: str, suite: str, tasks: tuple[Task, ...], task_index: int, workers: np.ndarray,
               keys: np.ndarray, rng: np.random.Generator, agent_seeds: np.ndarray, expert_agent: str = "bayes-explorer",
-              jobs: int = 1) -> TierRun:
+              jobs: int = 1, map_tasks: MapTasks | None = None) -> TierRun:
     """Play a tier on meta-episodes of task `tasks[task_index]`: one worker per row of `workers` [M, 4], the
     luck keys of its episodes in the row of `keys` [M, H]."""
     task = tasks[task_index]
@@ -116,6 +120,6 @@ def play_tier(tier: str, suite: str, tasks: tuple[Task, ...], task_index: int, w
         from mewa_bench.datasets.expert_rollout import play_expert_parallel
 
         played = play_expert_parallel(expert_path(expert_agent), suite, tasks, np.full(n_meta, task_index), workers,
-                                      keys, agent_seeds, jobs)
+                                      keys, agent_seeds, jobs, map_tasks)
         return TierRun(played, np.full(n_meta * n_ep, ADAPTIVE, dtype=np.int64))
     raise ValueError(f"unknown tier {tier!r}; expected one of {', '.join(TIERS)}")

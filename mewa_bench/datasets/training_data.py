@@ -16,12 +16,14 @@ import hashlib
 import json
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from mewa_bench.datasets.expert_rollout import MapTasks
 from mewa_bench.datasets.labels import optimal_labels
 from mewa_bench.datasets.tiers import (ADAPTIVE, PROTOCOL_EPISODES, TIERS, TierRun, behaviour_source,
                                        episodes_per_worker, expected_of_episodes, file_sha256, play_tier,
@@ -124,8 +126,8 @@ class _Group:
     run: TierRun
 
 
-def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Generator,
-                jobs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[_Group]]:
+def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Generator, jobs: int,
+                map_tasks: MapTasks | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[_Group]]:
     """Sample `meta_batch` meta-train workers (checked) and play the tier on them, task by task."""
     m, h = spec.meta_batch, spec.episodes_per_worker
     task_idx, workers = sample_training_pairs(suite.tasks, rng, m)
@@ -139,7 +141,7 @@ def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Gen
             check_training_workers(suite.tasks[i], workers[rows], f"{spec.name}: task {i}")
             seeds = np.array([_seed_int(f"{spec.dataset_id}/agent/{first + r}") for r in rows], dtype=np.int64)
             groups.append(_Group(rows, play_tier(spec.tier, suite.name, suite.tasks, i, workers[rows], keys[rows], rng,
-                                                 seeds, spec.expert_agent, jobs)))
+                                                 seeds, spec.expert_agent, jobs, map_tasks)))
     return task_idx, workers, keys, groups
 
 
@@ -344,9 +346,11 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
 
 
 def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
-                           timings: dict[str, float] | None = None) -> dict[str, Any]:
+                           timings: dict[str, float] | None = None, map_tasks: MapTasks | None = None) -> dict[str, Any]:
     """Build a training dataset into `root` (must not exist; written beside it, then renamed); returns its
-    meta/mewa.json content. `timings`, if given, receives the seconds of each phase (play, exact, write)."""
+    meta/mewa.json content. `timings`, if given, receives the seconds of each phase (play, exact, write).
+    The expert's play and the exact values run in `jobs` local processes, or as `map_tasks` (e.g. Ray tasks:
+    `ray_tasks`) when given, in `jobs` x 4 chunks per round; the bytes are the same either way."""
     import time
 
     from mewa_bench.datasets.bulk_writer import write_lerobot_dataset
@@ -364,10 +368,10 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     played = []
     frames, nearest = 0, np.inf
     while frames < spec.frames:
-        played.append(_play_round(spec, suite, len(played) * spec.meta_batch, rng, jobs))
+        played.append(_play_round(spec, suite, len(played) * spec.meta_batch, rng, jobs, map_tasks))
         frames += sum(len(g.run.played.t) for g in played[-1][3])
     clock.append(time.perf_counter())
-    exact = _exact_by_group(spec, suite, played, jobs)
+    exact = _exact_by_group(spec, suite, played, jobs, map_tasks)
     clock.append(time.perf_counter())
     rounds, k = [], 0
     for task_idx, workers, keys, groups in played:
@@ -399,7 +403,8 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
 EXACT_BATCH = 256  # workers per exact job: the groups of one task are pooled across rounds up to this many
 
 
-def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs: int) -> list[tuple]:
+def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs: int,
+                    map_tasks: MapTasks | None = None) -> list[tuple]:
     """`exact_values` of every (round, task) group, in order. Groups of one task are pooled into jobs of about
     EXACT_BATCH workers (a wide suite's round holds a few workers per task; each worker's numbers are
     computed column by column, so pooling changes no value)."""
@@ -421,7 +426,7 @@ def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs:
                               np.concatenate([groups[k][2].state for k in batch])))
             members.append(batch)
     out: list[tuple] = [()] * len(groups)
-    for batch, (labels, optimum, values) in zip(members, _map(exact_values, jobs_args, jobs)):
+    for batch, (labels, optimum, values) in zip(members, (map_tasks or process_map(jobs))(exact_values, jobs_args)):
         frame_edges = np.cumsum([0] + [len(groups[k][2].t) for k in batch])
         worker_edges = np.cumsum([0] + [len(groups[k][1]) for k in batch])
         for j, k in enumerate(batch):
@@ -430,15 +435,30 @@ def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs:
     return out
 
 
-def _map(function: Any, args: list[tuple], jobs: int) -> list:
-    """`function` over argument tuples, in order, in `jobs` processes (the same results for any `jobs`)."""
-    if jobs <= 1 or len(args) < 2:
-        return [function(*a) for a in args]
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+def process_map(jobs: int) -> MapTasks:
+    """A `MapTasks` over `jobs` local processes (in this process when `jobs` is 1)."""
+    def run(function: Callable[..., Any], args: list[tuple]) -> list:
+        if jobs <= 1 or len(args) < 2:
+            return [function(*a) for a in args]
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return list(pool.map(function, *zip(*args)))
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            return list(pool.map(function, *zip(*args)))
+    return run
+
+
+def ray_tasks(function: Callable[..., Any], args: list[tuple]) -> list:
+    """A `MapTasks` of Ray tasks, one per argument tuple (inside `ray_backend.session`)."""
+    from mewa_bench.protocol.ray_backend import ray_map
+
+    return ray_map(_call, [(function, a) for a in args])
+
+
+def _call(packed: tuple[Callable[..., Any], tuple]) -> Any:
+    """`function(*args)` of a packed (function, args): one Ray task."""
+    function, args = packed
+    return function(*args)
 
 
 def read_training_meta(root: Path | str) -> dict[str, Any]:
