@@ -10,11 +10,12 @@ default protocol in under 60 s (`--bayes`).
 `--neural`: a small torch GRU (64 units, the README's batched example) against the same network
 written as a one-lane agent (`benchmarks/agents/gru_one_lane.py`: one object and one forward pass per
 lane and step), isolated, default lanes, on narrow-v2. Targets: batched >= 20x the one-lane agent
-steps/s, and >= 50,000 agent steps/s with --jobs 2.
+steps/s, and >= 50,000 agent steps/s with --jobs 2. Its last line (alone: `--parts`) times the parts no
+runner can avoid and the ratio they allow.
 `--learned`: a ranked wide-v2 run (96 seeds, 7,680 units) of each shipped learned baseline with
 --jobs 2, against the random agent's in the same run. Target: each within 3 minutes.
 
-    .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes] [--neural] [--learned]
+    .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes] [--neural] [--learned] [--parts]
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import os
 import re
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -84,7 +86,13 @@ def main() -> None:
     parser.add_argument("--bayes", action="store_true", help="also time bayes-adaptive with the default protocol")
     parser.add_argument("--neural", action="store_true", help="also time a torch GRU agent, one-lane vs batched")
     parser.add_argument("--learned", action="store_true", help="also time ranked wide-v2 runs of the learned baselines")
+    parser.add_argument("--parts", action="store_true", help="only the --neural section's last line: the GRU's act() "
+                                                               "one-lane and batched, the env's step, and their ceiling")
     args = parser.parse_args()
+    if args.parts:
+        with tempfile.TemporaryDirectory() as tmp:
+            parts(readme_gru_agent(Path(tmp)), REPO / "benchmarks/agents/gru_one_lane.py")
+        return
     if args.neural:
         neural(seeds=tuple(range(min(args.seeds, 64))))
     if args.learned:
@@ -147,6 +155,45 @@ def neural(seeds: tuple[int, ...]) -> None:
             rate = steps / (total - scoring)
             base = base or rate
             print(f"{label:<44} {rate:>14,.0f} {rate / base:>8.1f} {total - scoring:>7.1f}")
+        parts(batched, one_lane)
+
+
+def _per_call(call: Callable[[], object], repeats: int = 2000) -> float:
+    """Seconds per call of `call` (best of three rounds)."""
+    best = np.inf
+    for _ in range(3):
+        start = time.perf_counter()
+        for _ in range(repeats):
+            call()
+        best = min(best, (time.perf_counter() - start) / repeats)
+    return best
+
+
+def parts(batched: Path, one_lane: Path, lanes: int = 64) -> None:
+    """The parts of an agent step that no runner can avoid, in this process on one thread: the one-lane GRU's act()
+    per step, the batched GRU's act() per lane, the batched env's step per lane; and the ratio a runner costing
+    nothing else would reach, (one-lane act + env) / (batched act + env) per lane."""
+    import torch
+
+    from mewa_bench.envs import MewaVectorEnv
+    from mewa_bench.protocol.agent import load_agent, load_lanes
+
+    torch.set_num_threads(1)
+    suite = load_suite("narrow-v2")
+    env = MewaVectorEnv(num_envs=lanes, tasks=suite.tasks)
+    obs, _ = env.reset(seed=0)
+    obs = obs.astype(np.float32)
+    space, actions = env.single_observation_space, env.single_action_space
+    one = load_agent(one_lane, space, actions)
+    vector = load_lanes(batched, space, actions, lanes)
+    all_lanes = np.arange(lanes, dtype=np.int64)
+    rng = np.random.default_rng(0)
+    one_act = _per_call(lambda: one.act(obs[0]))
+    batched_act = _per_call(lambda: vector.act(all_lanes, obs), 500) / lanes
+    env_step = _per_call(lambda: env.step(rng.integers(0, 4, lanes)), 500) / lanes
+    print(f"parts, one thread: one-lane act() {one_act * 1e6:.1f} us per step; batched act() {batched_act * 1e6:.2f} "
+          f"us and the batched env's step {env_step * 1e6:.2f} us per lane ({lanes} lanes); a runner costing nothing "
+          f"else would reach {(one_act + env_step) / (batched_act + env_step):.1f}x")
 
 
 def learned() -> None:
