@@ -1,0 +1,35 @@
+"""The scripts that train the shipped baselines: the tuning rule, and the runs planned from its selection."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+
+import train_baselines  # noqa: E402
+import tune_baselines  # noqa: E402
+
+
+def row(suite: str, algo: str, config: str, mean: float) -> dict:
+    return {"suite": suite, "algorithm": algo, "config": config, "validation_mean": f"{mean:.4f}"}
+
+
+def test_a_variant_replaces_the_defaults_only_beyond_the_margin() -> None:
+    rows = [row("narrow-v2", "rl2", "default", 0.70), row("narrow-v2", "rl2", "ent-0.1x", 0.709),
+            row("narrow-v2", "maml", "default", 0.70), row("narrow-v2", "maml", "lr-0.3x", 0.7101),
+            row("narrow-v2", "maml", "ent-0.1x", 0.72), row("wide-v2", "pearl", "kl-10x", 0.9)]
+    chosen = tune_baselines.selection(rows)
+    assert chosen == {("narrow-v2", "rl2"): "default", ("narrow-v2", "maml"): "ent-0.1x"}  # no defaults: no choice
+
+
+def test_the_runs_use_the_selected_settings_and_untuned_suites_get_none() -> None:
+    assert train_baselines.selected_settings("narrow-v1", "rl2") == {}
+    assert train_baselines.selected_settings("narrow-v2", "rl2") == {"ent_coef": 0.001}  # docs/tuning.csv's choice
+    assert train_baselines.selected_settings("narrow-v2", "varibad") == {}
+    assert train_baselines.same_settings({"ent_coef": "0.001"}, {"ent_coef": 0.001})
+    assert not train_baselines.same_settings({}, {"ent_coef": 0.001})
+    states = {(s, a, n): st for s, a, n, st in train_baselines.plan(["narrow-v1", "narrow-v2"], ["rl2", "maml"])}
+    assert len(states) == 2 * 2 * 5
+    assert all(states[("narrow-v1", a, n)] == "shipped" for a in ("rl2", "maml") for n in range(1, 6))
+    assert all(st in ("shipped", "missing") for st in states.values())
