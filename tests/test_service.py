@@ -540,6 +540,10 @@ def test_a_submitters_runs_of_one_algorithm_share_a_row_of_the_algorithms_table(
     assert abs(ours["mean"]["mean"] - expected) < 1e-9
     assert ours["mean"]["low"] < ours["mean"]["mean"] < ours["mean"]["high"]
     assert other["mean"]["low"] is None and "no interval over training runs" in other["note"]
+    from mewa_bench.leaderboard.algorithm_tables import best_fixed_note
+
+    assert board["best_fixed_note"] is None  # narrow-v1's best fixed policy scores between 0 and 1
+    assert get(server, "/api/leaderboards/narrow-v2").json()["best_fixed_note"] == best_fixed_note(load_suite("narrow-v2"))
     page = get(server, "/leaderboards/narrow-v1").text
     assert 'id="algorithms"' in page and 'data-runs="3"' in page and "<h2>Checkpoints</h2>" in page
     # the board leads with the algorithms table, then the figure, then the checkpoints

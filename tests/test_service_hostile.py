@@ -142,7 +142,9 @@ def test_the_hostile_battery_ends_contained_with_reasons(server, hidden_dir, tmp
     assert sorted(r["rank"] for r in board["rows"] if r["kind"] == "agent") == [1, 2]
     assert {r["source"] for r in board["rows"] if r["kind"] == "reference"} == {"reference"}
     assert [a["runs"] for a in board["algorithms"]] == [1, 1]  # each a one-run algorithm named after its agent
-    assert get(server, f"/api/leaderboards/{HIDDEN}").json()["algorithms"] == []  # cell fractions would tell its size
+    hidden_board = get(server, f"/api/leaderboards/{HIDDEN}").json()
+    assert hidden_board["algorithms"] == []  # cell fractions would tell its size
+    assert hidden_board["best_fixed_note"] is None  # and so would a count of pairs
 
     output = httpx.get(f"{server.url}/api/submissions/{ids['chatty']}/output",
                        headers={"Authorization": f"Bearer {token}"}, timeout=60)

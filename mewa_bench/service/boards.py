@@ -65,6 +65,14 @@ def _public_suite(name: str) -> Suite:
     return load_suite(name)
 
 
+@lru_cache(maxsize=None)
+def best_fixed_note(name: str) -> str | None:
+    """A public board's note on what P(> best fixed) can say there (`algorithm_tables.best_fixed_note`), once."""
+    from mewa_bench.leaderboard.algorithm_tables import best_fixed_note as note_of
+
+    return note_of(_public_suite(name))
+
+
 def _hidden_suite(settings: Settings, board: str) -> Suite | None:
     """A hidden board's suite if it was generated already (the API never generates one)."""
     path = settings.data_dir / "hidden" / f"{board}.json"
@@ -118,10 +126,11 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
     # (Their figure draws the algorithms all the same: curves and run-level bands are means over pairs, no fractions.)
     algorithms = [] if hidden or suite is None else algorithm_table(suite, entries, submitters,
                                                                      settings.rank_uploads)
+    note = None if hidden or suite is None else best_fixed_note(name)
     return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
             "suite": None if hidden or suite is None else {"name": suite.name, "sha256": suite.sha256},
             "seeds": len(settings.seeds_for(name)), "entries": len(entries), "uploads_ranked": settings.rank_uploads,
-            "algorithms": algorithms, "rows": rows}
+            "algorithms": algorithms, "best_fixed_note": note, "rows": rows}
 
 
 @dataclass(frozen=True)
@@ -141,11 +150,18 @@ class BoardAlgorithms:
 _GROUPED: dict[tuple, BoardAlgorithms | None] = {}  # board entries never change once written: groups by their ids
 _GROUPED_KEPT = 32
 _GROUPED_LOCK = threading.Lock()  # the pages' and the figures' request threads share the cache
+_NOT_CACHED = object()  # None is a cached value: a board without runs
 
 
 def _grouped_key(suite: Suite, ids: Iterable[int], rank_uploads: bool) -> tuple:
     """The cache key of a board's groups: its suite, its entries (written once, never changed) and the ranking rule."""
     return suite.sha256, tuple(sorted(ids)), rank_uploads
+
+
+def _cached(key: tuple) -> Any:
+    """A board's cached groups (None: it has no run), or _NOT_CACHED."""
+    with _GROUPED_LOCK:
+        return _GROUPED.get(key, _NOT_CACHED)
 
 
 def algorithm_table(suite: Suite, entries: list[Any], submitters: dict[int, int],
@@ -165,9 +181,9 @@ def grouped_runs(suite: Suite, entries: list[Any], submitters: dict[int, int],
     then named with its submitter's number); a self-reported run never joins a server-evaluated one. A run without
     per-pair curves (stored before the service kept them) is left out. Cached by the entries' ids."""
     key = _grouped_key(suite, (e.id for e in entries), rank_uploads)
-    with _GROUPED_LOCK:
-        if key in _GROUPED:
-            return _GROUPED[key]
+    cached = _cached(key)
+    if cached is not _NOT_CACHED:
+        return cached
     grouped = _group(suite, entries, submitters, rank_uploads)
     with _GROUPED_LOCK:
         while len(_GROUPED) >= _GROUPED_KEPT:
@@ -185,10 +201,9 @@ def board_algorithms(session: Session, settings: Settings, name: str, suite: Sui
     from mewa_bench.service.models import BoardEntry, Submission
 
     ids = session.scalars(select(BoardEntry.id).where(BoardEntry.board == name)).all()
-    key = _grouped_key(suite, ids, settings.rank_uploads)
-    with _GROUPED_LOCK:
-        if key in _GROUPED:
-            return _GROUPED[key]
+    cached = _cached(_grouped_key(suite, ids, settings.rank_uploads))
+    if cached is not _NOT_CACHED:
+        return cached
     found = session.execute(select(BoardEntry.id, BoardEntry.agent_name, BoardEntry.algorithm, BoardEntry.source,
                                    BoardEntry.privileged, BoardEntry.pair_curves, Submission.token_id)
                             .join(Submission, Submission.id == BoardEntry.submission_id)

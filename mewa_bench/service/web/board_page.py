@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from mewa_bench.design.suites import load_suite
 from mewa_bench.leaderboard import algorithm_tables
 from mewa_bench.leaderboard.algorithms import AlgorithmRow
 from mewa_bench.leaderboard.board import Row
@@ -87,7 +86,7 @@ def algorithms_html(board: dict[str, Any]) -> str:
         kind = "privileged" if row.privileged else "agent"
         rows.append(f'<tr class="{kind}" data-algorithm="{esc(row.algorithm)}" data-runs="{row.runs}">'
                     + "".join(tds) + "</tr>")
-    note = algorithm_tables.best_fixed_note(load_suite(board["board"]))  # a public board's suite is its name
+    note = board.get("best_fixed_note")
     return (f'<h2>Algorithms</h2><table id="algorithms"><thead><tr>{head}</tr></thead><tbody>\n'
             + "\n".join(rows) + f'\n</tbody></table><p class="muted">{esc(algorithm_tables.EXPLANATION)}</p>'
             + (f'<p class="muted" id="best-fixed-note">{esc(note)}</p>' if note else ""))
