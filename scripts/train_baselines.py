@@ -9,6 +9,7 @@ selection is reported, never mixed in: retrain it, or rename it as its own algor
 
     python scripts/train_baselines.py status                       # shipped, missing and mismatched runs
     python scripts/train_baselines.py run [--suite S] [--algo A]   # train and evaluate what is missing, one at a time
+    python scripts/train_baselines.py readmes                      # every learned run's README: its results section
 
 Runs are independent: start two `run`s with different --suite or --algo to use two cores. A run interrupted while
 training resumes from its checkpoint (`train --resume`); one interrupted while evaluating is evaluated again.
@@ -28,6 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from tune_baselines import GRID, SUMMARY  # noqa: E402 (the tuning grid and its summary are the selection's source)
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from mewa_bench.protocol.results import read_results  # noqa: E402
+
 CLI = [str(Path(sys.executable).with_name("mewa-bench"))]
 SEEDS = {"narrow-v1": 5, "wide-v1": 3, "narrow-v2": 5, "wide-v2": 3}  # the paper's counts: 5 narrow, 3 wide
 ALGOS = ("rl2", "varibad", "pearl", "maml")
@@ -99,14 +103,67 @@ def run_one(algo: str, suite: str, seed: int) -> None:
     subprocess.run([*CLI, "evaluate", str((out / "agent.py").relative_to(ROOT)), "--suite", suite, "--name", out.name,
                     "--out", str(results(algo, suite, seed).relative_to(ROOT)), "--overwrite"], check=True, env=env,
                    cwd=ROOT, stdout=subprocess.DEVNULL)
+    write_results_section(out)
+
+
+RESULTS_HEADING = "\n## Results (protocol 2, default seeds"
+
+
+def results_section(folder: Path) -> str | None:
+    """A learned run's README section stating its ranked results (None: it has none yet)."""
+    files = sorted(folder.glob("results-*.json"))
+    if not files:
+        return None
+
+    def ci(e: dict, fmt: str) -> str:
+        return f"{e['mean']:{fmt}} [{e['low']:.4f}, {e['high']:.4f}]"
+
+    rows = []
+    for path in files:
+        d = read_results(path)
+        s = d["scores"]
+        rows.append(f"| {d['suite']['name']} | {ci(s['mean'], '.4f')} | {s['curve'][0]['mean']:.3f} | "
+                    f"{s['curve'][-1]['mean']:.3f} | {ci(s['adaptability'], '+.4f')} | "
+                    f"{ci(s['comparisons']['best_fixed']['difference'], '+.4f')} | {len(d['seeds'])} |")
+    offline = "dataset" in json.loads((folder / "run.json").read_text()).get("settings", {})
+    curve = ("`metrics.csv` (the loss and accuracy of the optimal-action predictions)" if offline
+             else "`training_curve.png` (meta-train episode-1 and episode-10 normalised returns)")
+    return (f"{RESULTS_HEADING}; `{files[0].name}`)\n\n"
+            "| suite | mean score | s_1 | s_10 | adaptability | vs best fixed | seeds |\n"
+            "|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n\n"
+            f"Training: {curve}. How these compare with the paper's learned baselines: `docs/baselines.md`.\n")
+
+
+def write_results_section(folder: Path) -> bool:
+    """Put (or replace) the results section at the end of a learned run's README; whether it changed."""
+    section = results_section(folder)
+    readme = folder / "README.md"
+    if section is None or not readme.exists():
+        return False
+    text = readme.read_text()
+    kept = text.split(RESULTS_HEADING, 1)[0].rstrip() + "\n"
+    if kept + section == text:
+        return False
+    readme.write_text(kept + section)
+    return True
+
+
+def learned_runs() -> list[Path]:
+    """Every shipped run that `mewa-bench train` wrote (its folder has run.json)."""
+    return sorted(p.parent for p in (ROOT / "submissions").glob("*/run.json"))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=["status", "run"])
+    parser.add_argument("what", choices=["status", "run", "readmes"])
     parser.add_argument("--suite", action="append", choices=list(SEEDS))
     parser.add_argument("--algo", action="append", choices=list(ALGOS))
     args = parser.parse_args()
+    if args.what == "readmes":
+        for folder in learned_runs():
+            if write_results_section(folder):
+                print(f"updated {folder.relative_to(ROOT)}/README.md")
+        return
     runs = plan(args.suite or list(SEEDS), args.algo or list(ALGOS))
     if args.what == "status":
         for state in ("shipped", "missing", "other settings", "untuned"):

@@ -33,3 +33,32 @@ def test_the_runs_use_the_selected_settings_and_untuned_suites_get_none() -> Non
     assert len(states) == 2 * 2 * 5
     assert all(states[("narrow-v1", a, n)] == "shipped" for a in ("rl2", "maml") for n in range(1, 6))
     assert all(st in ("shipped", "missing") for st in states.values())
+
+
+def test_every_learned_runs_readme_states_its_results_files_numbers() -> None:
+    """A shipped run's README ends with its results (`train_baselines.py readmes`): re-evaluating a run without
+    rewriting its README, or editing the numbers by hand, fails here."""
+    runs = train_baselines.learned_runs()
+    assert len(runs) >= 50
+    for folder in runs:
+        section = train_baselines.results_section(folder)
+        assert section is not None, f"{folder.name}: trained but never evaluated (no results-*.json)"
+        readme = (folder / "README.md").read_text()
+        assert readme.endswith(section), f"{folder.name}/README.md: its results section is not its results file's " \
+                                         "(python scripts/train_baselines.py readmes)"
+        assert readme.count(train_baselines.RESULTS_HEADING) == 1, folder.name
+
+
+def test_the_results_section_is_replaced_not_appended_twice(tmp_path) -> None:
+    import shutil
+
+    folder = tmp_path / "rl2-wide-v2-seed1"
+    shutil.copytree(train_baselines.ROOT / "submissions" / folder.name, folder,
+                    ignore=shutil.ignore_patterns("checkpoint.pt", "*.png"))
+    readme = folder / "README.md"
+    before = readme.read_text()
+    assert not train_baselines.write_results_section(folder)  # already current
+    readme.write_text(before.replace("| 96 |", "| 97 |"))
+    assert train_baselines.write_results_section(folder) and readme.read_text() == before
+    readme.write_text(before.split(train_baselines.RESULTS_HEADING)[0])
+    assert train_baselines.write_results_section(folder) and readme.read_text() == before
