@@ -110,17 +110,17 @@ RESULTS_HEADING = "\n## Results (protocol 2, default seeds"
 
 
 def results_section(folder: Path) -> str | None:
-    """A learned run's README section stating its ranked results (None: it has none yet)."""
+    """A learned run's README section stating its ranked results (None: it has none yet, or one still running)."""
     files = sorted(folder.glob("results-*.json"))
-    if not files:
+    done = [read_results(path) for path in files]
+    if not files or not all(d.get("complete") for d in done):
         return None
 
     def ci(e: dict, fmt: str) -> str:
         return f"{e['mean']:{fmt}} [{e['low']:.4f}, {e['high']:.4f}]"
 
     rows = []
-    for path in files:
-        d = read_results(path)
+    for d in done:
         s = d["scores"]
         rows.append(f"| {d['suite']['name']} | {ci(s['mean'], '.4f')} | {s['curve'][0]['mean']:.3f} | "
                     f"{s['curve'][-1]['mean']:.3f} | {ci(s['adaptability'], '+.4f')} | "

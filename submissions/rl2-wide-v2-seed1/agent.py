@@ -1,4 +1,4 @@
-"""RL^2 agent trained by `mewa-bench train rl2 --suite wide-v2 --seed 1 --steps 4000000 --out submissions/rl2-wide-v2-seed1`; plays the checkpoint beside this file.
+"""RL^2 agent trained by `mewa-bench train rl2 --set ent_coef=0.001 --suite wide-v2 --seed 1 --steps 4005888 --out submissions/rl2-wide-v2-seed1`; plays the checkpoint beside this file.
 
 Evaluate it: `mewa-bench evaluate submissions/rl2-wide-v2-seed1/agent.py --suite wide-v2`.
 """

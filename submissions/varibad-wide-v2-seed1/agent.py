@@ -1,4 +1,4 @@
-"""VariBAD agent trained by `mewa-bench train varibad --suite wide-v2 --seed 1 --steps 4000000 --out submissions/varibad-wide-v2-seed1`; plays the checkpoint beside this file.
+"""VariBAD agent trained by `mewa-bench train varibad --set ent_coef=0.001 --suite wide-v2 --seed 1 --steps 4005888 --out submissions/varibad-wide-v2-seed1`; plays the checkpoint beside this file.
 
 Evaluate it: `mewa-bench evaluate submissions/varibad-wide-v2-seed1/agent.py --suite wide-v2`.
 """

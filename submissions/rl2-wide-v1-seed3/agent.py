@@ -1,0 +1,14 @@
+"""RL^2 agent trained by `mewa-bench train rl2 --suite wide-v1 --seed 3 --steps 4005888 --out submissions/rl2-wide-v1-seed3`; plays the checkpoint beside this file.
+
+Evaluate it: `mewa-bench evaluate submissions/rl2-wide-v1-seed3/agent.py --suite wide-v1`.
+"""
+
+from pathlib import Path
+
+from mewa_bench.agents.rl2 import RL2VectorAgent
+
+PRIVILEGED = False
+
+
+def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="false"):
+    return RL2VectorAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), num_lanes, seed=seed, greedy=greedy)
