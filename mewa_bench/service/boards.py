@@ -122,13 +122,14 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
         rows.append({**dataclasses.asdict(r), "source": REFERENCE_SOURCE, "submission_id": None, "curve": [r.mean] * EPISODES_PER_PAIR,
                      "curve_low": None, "curve_high": None})  # fixed policies: a flat curve
     rows.sort(key=lambda r: (-r["mean"], KIND_ORDER[r["kind"]], r["name"]))
-    # Hidden boards have none: its fractions of (run, pair) cells would tell the hidden suite's number of pairs.
-    # (Their figure draws the algorithms all the same: curves and run-level bands are means over pairs, no fractions.)
-    algorithms = [] if hidden or suite is None else algorithm_table(suite, entries, submitters,
-                                                                     settings.rank_uploads)
-    note = None if hidden or suite is None else best_fixed_note(name)
+    # What only a public board shows. A hidden board has no algorithms table (its fractions of (run, pair) cells would
+    # tell the hidden suite's number of pairs), no P(> best fixed) note (a count of pairs) and no suite name or hash.
+    # (Its figure draws the algorithms all the same: curves and run-level bands are means over pairs, no fractions.)
+    public = None if hidden else suite
+    algorithms = [] if public is None else algorithm_table(public, entries, submitters, settings.rank_uploads)
+    note = None if public is None else best_fixed_note(name)
     return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
-            "suite": None if hidden or suite is None else {"name": suite.name, "sha256": suite.sha256},
+            "suite": None if public is None else {"name": public.name, "sha256": public.sha256},
             "seeds": len(settings.seeds_for(name)), "entries": len(entries), "uploads_ranked": settings.rank_uploads,
             "algorithms": algorithms, "best_fixed_note": note, "rows": rows}
 
