@@ -112,6 +112,14 @@ def test_convert_refuses_a_file_that_does_not_check_out_and_leaves_it_alone(tmp_
     refused(lambda r: r["scores"]["mean"].__setitem__("mean", r["scores"]["mean"]["mean"] + 1e-12),
             r"scores\.mean\.mean recomputed from the units differs from the stored one")
     refused(lambda r: r["units"][1].__setitem__("task", 3), r"unit \(pair 0, seed 1\): task 3 is not the pair's task")
+    stale = json.loads(json.dumps(good))
+    stale["scores"]["mean"]["mean"] += 1e-12  # as if scored by another version: only a re-score converts it
+    write_results(path, stale)
+    done = convert_results(path, rescore=True)
+    assert done.rescored == ("scores.mean.mean",) and 0 < done.largest_change < 1e-11
+    new = read_results(path)
+    assert new["schema_version"] == 3 and same_units(good["units"], new["units"]) is None
+    assert json_text(new["scores"]) == json_text(good["scores"])  # today's scores of the same units
     protocol1 = tmp_path / "protocol1.json"
     shutil.copy(Path(__file__).parent / "data" / "results-protocol1-random-narrow-v1.json", protocol1)
     with pytest.raises(ResultsError, match="schema 1 .* cannot become schema 3"):

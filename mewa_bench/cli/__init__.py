@@ -564,7 +564,9 @@ app.add_typer(results_app, name="results")
 
 
 @results_app.command("convert")
-def results_convert(files: list[Path] = typer.Argument(..., metavar="FILE", help="Results files to rewrite.")) -> None:
+def results_convert(files: list[Path] = typer.Argument(..., metavar="FILE", help="Results files to rewrite."),
+                    rescore: bool = typer.Option(False, help="Recompute the scores from the units (for a file scored "
+                                                 "by an older mewa-bench) instead of checking the stored ones.")) -> None:
     """Rewrite schema-2 results files as schema 3 (compact units), each after checking it: its units, env seeds
     and scores must come back exactly; a file that fails a check is left as it was."""
     from mewa_bench.protocol.results_convert import convert_results
@@ -572,7 +574,7 @@ def results_convert(files: list[Path] = typer.Argument(..., metavar="FILE", help
     failed = 0
     for path in files:
         try:
-            done = convert_results(path)
+            done = convert_results(path, rescore=rescore)
         except (ValueError, OSError) as e:
             _print_error(e)
             failed += 1
@@ -582,6 +584,9 @@ def results_convert(files: list[Path] = typer.Argument(..., metavar="FILE", help
         else:
             console.print(f"{escape(str(path))}: schema {done.schema_before} -> 3, {done.bytes_before / 1e6:.2f} MB -> "
                           f"{done.bytes_after / 1e6:.2f} MB")
+        if done.rescored:
+            console.print(f"  re-scored: {len(done.rescored)} score fields changed, by at most {done.largest_change:.6f} "
+                          f"(first: {escape(done.rescored[0])})")
     if failed:
         raise typer.Exit(1)
 

@@ -32,10 +32,15 @@ class Conversion:
     schema_before: int
     bytes_before: int
     bytes_after: int
+    rescored: tuple[str, ...] = ()  # the score fields that re-scoring changed (empty: none, or not re-scored)
+    largest_change: float = 0.0  # the largest absolute change of a number among them
 
 
-def convert_results(path: Path) -> Conversion:
-    """Rewrite a schema-2 results file as schema 3 after the checks above; a schema-3 file is left as it is."""
+def convert_results(path: Path, rescore: bool = False) -> Conversion:
+    """Rewrite a schema-2 results file as schema 3 after the checks above; a schema-3 file is left as it is.
+
+    With `rescore`, the scores are recomputed from the (checked) units instead of checked against the stored ones.
+    """
     path = Path(path)
     size = path.stat().st_size if path.exists() else 0
     results = read_results(path)
@@ -56,6 +61,12 @@ def convert_results(path: Path) -> Conversion:
     others = json_text({**back, "schema_version": schema, "units": units})
     if others != json_text({**results, "units": units}):
         raise ResultsError(f"{path}: a field other than the units changed in conversion; nothing was written")
+    if rescore:
+        again = finish({**back, "units": list(back["units"])}, suite)
+        moved = _differences(again, results)
+        text = results_text({**again, "schema_version": SCHEMA_VERSION}, str(path))
+        write_atomic(path, text)
+        return Conversion(path, schema, size, len(text.encode()), tuple(moved), max(moved.values(), default=0.0))
     if "scores" in results:
         _check_scores(back, results, suite, path)
     write_atomic(path, text)
@@ -101,6 +112,27 @@ def _check_scores(back: dict[str, Any], results: dict[str, Any], suite: Suite, p
             raise ResultsError(f"{path}: {where} recomputed from the units differs from the stored one (scored by "
                                f"another version of mewa-bench?): re-score the run before converting it; nothing "
                                f"was written")
+
+
+def _differences(again: dict[str, Any], results: dict[str, Any]) -> dict[str, float]:
+    """Each leaf of scores/baselines/complete that differs after re-scoring, with its absolute change (inf if
+    not numeric)."""
+    moved: dict[str, float] = {}
+
+    def walk(a: Any, b: Any, at: str) -> None:
+        if isinstance(a, dict) and isinstance(b, dict) and set(a) == set(b):
+            for key in sorted(a):
+                walk(a[key], b[key], f"{at}.{key}")
+        elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+            for i, (x, y) in enumerate(zip(a, b)):
+                walk(x, y, f"{at}[{i}]")
+        elif json_text(a) != json_text(b):
+            numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b))
+            moved[at] = abs(float(a) - float(b)) if numeric else float("inf")
+
+    for key in ("scores", "baselines", "complete"):
+        walk(again.get(key), results.get(key), key)
+    return moved
 
 
 def _first_difference(a: Any, b: Any, at: str) -> str | None:
