@@ -70,6 +70,7 @@ def test_download_a_shipped_dataset_and_load_it_with_lerobot(tmp_path: Path) -> 
     result = runner.invoke(app, ["datasets", "download", name, "--dir", str(tmp_path), "--catalog", str(CATALOG)])
     assert result.exit_code == 0, result.output
     assert "verified" in result.output
+    assert "warning" in result.output and "TEST pairs" in " ".join(result.output.split())  # said before it lands
     entry = next(e for e in load_catalog(CATALOG)["evaluation_recordings"] if e["name"] == name)
     ds = LeRobotDataset(f"mewa/{name}", root=tmp_path / name, video_backend="pyav")
     assert ds.num_episodes == entry["episodes"] and ds.num_frames == entry["frames"]
@@ -91,6 +92,22 @@ def test_download_a_shipped_dataset_and_load_it_with_lerobot(tmp_path: Path) -> 
     assert clean.exit_code == 0 and "warning" not in clean.output
     missing = runner.invoke(app, ["datasets", "info", "no-such-dataset", "--catalog", str(CATALOG)])
     assert missing.exit_code == 1 and "no-such-dataset" in " ".join(missing.output.split())
+
+
+def test_a_buildable_training_dataset_is_known_to_info_and_download(tmp_path: Path) -> None:
+    name = "narrow-v2-train-learning-histories"
+    assert name not in {e["name"] for e in load_catalog(CATALOG)["datasets"]}  # listed as buildable only
+    listed = " ".join(runner.invoke(app, ["datasets", "list", "--catalog", str(CATALOG)]).output.split())
+    assert name in listed
+    info = runner.invoke(app, ["datasets", "info", name, "--catalog", str(CATALOG)])
+    flat = " ".join(info.output.split())
+    assert info.exit_code == 0, info.output
+    assert f"mewa-bench datasets build {name}" in flat and "learning-histories" in flat and "warning" not in flat
+    recorded = next(b for b in load_catalog(CATALOG)["builds"] if b["name"] == name)["sha256"]
+    assert recorded[:40] in flat.replace(" ", "")
+    fetched = runner.invoke(app, ["datasets", "download", name, "--dir", str(tmp_path), "--catalog", str(CATALOG)])
+    assert fetched.exit_code == 1 and f"datasets build {name}" in " ".join(fetched.output.split())
+    assert list(tmp_path.iterdir()) == []  # nothing fetched or left behind
 
 
 def test_record_pack_download_round_trip(tmp_path: Path) -> None:

@@ -125,3 +125,57 @@ def test_the_baselines_page_says_what_is_public_and_it_is_true() -> None:
     assert result.exit_code == 0, result.output
     for pair in load_suite("narrow-v2").pairs:  # what the page says `suites show` prints: every curated worker
         assert " ".join(f"{w:.2f}" for w in pair.worker.w) in result.output
+
+
+def readme_section(title: str) -> str:
+    """The README's `## title` section, up to the next `## `."""
+    text = (ROOT / "README.md").read_text()
+    start = text.index(f"\n## {title}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start:end if end > 0 else None]
+
+
+def test_the_readme_names_every_shipped_suite_and_counts_them_right() -> None:
+    from mewa_bench.design.suites import ALL_SUITES
+
+    section = readme_section("Suites")
+    words = {2: "Two", 3: "Three", 4: "Four", 5: "Five", 6: "Six"}
+    assert f"{words[len(ALL_SUITES)]} frozen, versioned test suites" in section
+    for name in ALL_SUITES:
+        assert f"`{name}`" in section, name
+
+
+def test_the_command_table_names_every_algorithm_train_takes() -> None:
+    from mewa_bench.agents.training_io import ALGORITHMS
+
+    table = readme_section("Command line")
+    [row] = [line for line in table.splitlines() if line.startswith("| `mewa-bench train ")]
+    named = re.match(r"\| `mewa-bench train ([\w\\|]+) ", row).group(1).split("\\|")
+    assert named == list(ALGORITHMS)
+    *first, last = ALGORITHMS
+    assert f"{', '.join(first)} or {last}" in " ".join(
+        CliRunner().invoke(app, ["train", "--help"], env={"COLUMNS": "200"}).output.replace("│", " ").split())
+
+
+def test_what_the_readme_says_read_results_gives_is_what_it_gives() -> None:
+    from mewa_bench.protocol.results import read_results
+
+    text = " ".join((ROOT / "README.md").read_text().split())
+    m = re.search(r"`mewa_bench\.protocol\.results\.read_results\(path\)` gives the whole file as a dict, checked, "
+                  r"with its `units` decoded into a list of dicts \(([\w, ]+)\)", text)
+    assert m, "the README's sentence on read_results changed: keep it true"
+    results = read_results(ROOT / "submissions" / "rl2-narrow-v2-seed1" / "results-narrow-v2.json")
+    assert {"agent", "suite", "seeds", "scores", "units"} <= results.keys()
+    assert isinstance(results["units"], list) and set(results["units"][0]) == set(m.group(1).split(", "))
+
+
+@pytest.mark.parametrize("command", [["evaluate"], ["train"], ["submit"], ["record"]])
+def test_the_default_suite_is_the_one_the_docs_recommend_for_adaptation(command: list[str]) -> None:
+    from mewa_bench.design.suites import DEFAULT_SUITE
+
+    section = " ".join(readme_section("Suites").split())
+    recommended = re.search(r"- `(\S+)`, `(\S+)`: (?:(?!- `).)*?the suites for measuring adaptation", section)
+    assert recommended and DEFAULT_SUITE in recommended.groups()
+    text = " ".join(CliRunner().invoke(app, [*command, "--help"], env={"COLUMNS": "200"}).output.replace("│", " ")
+                    .split())
+    assert re.search(rf"\[default: {DEFAULT_SUITE}\]|default: {DEFAULT_SUITE}\b", text), text

@@ -23,7 +23,9 @@ from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 from PIL import Image
 from rerun.chunk import RrdReader
+from typer.testing import CliRunner
 
+from mewa_bench.cli import app
 from mewa_bench.design.suites import load_suite
 from mewa_bench.game.rules import Event
 from mewa_bench.logs import McapSink, RerunSink, open_viewer, view, viewer_command
@@ -542,6 +544,20 @@ def test_viewer_on_a_missing_file_is_a_clear_error(tmp_path, monkeypatch):
     rrd.write_bytes(b"")
     assert open_viewer(rrd, web=True, web_port=free_port()) == 0
     assert len(calls) == 1 and "--web-viewer" in calls[0]
+
+
+def test_view_without_a_display_refuses_the_native_viewer_and_starts_nothing(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(view.subprocess, "Popen", lambda command, **kw: FinishedViewer(calls, command, **kw))
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    rrd = tmp_path / "run.rrd"
+    rrd.write_bytes(b"")
+    result = CliRunner().invoke(app, ["view", str(rrd)])
+    assert result.exit_code == 1 and "no display found" in result.output and "--web" in result.output
+    assert calls == []  # nothing started: no server, no window
+    monkeypatch.setenv("DISPLAY", ":99")
+    assert open_viewer(rrd) == 0 and calls == [viewer_command(rrd)]
 
 
 def free_port() -> int:

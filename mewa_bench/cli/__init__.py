@@ -14,6 +14,7 @@ from rich.progress import (BarColumn, DownloadColumn, MofNCompleteColumn, Progre
 from rich.table import Table
 
 from mewa_bench.extras import MissingExtra
+from mewa_bench.design.suites import DEFAULT_SUITE
 from mewa_bench.protocol.config import default_seeds_text
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -58,7 +59,7 @@ RAY_ADDRESS_HELP = ("Run the units as Ray tasks on the Ray cluster at this addre
 @app.command()
 def evaluate(
     agent: Path = typer.Argument(..., metavar="AGENT", help="Your agent: a .py file with make_vector_agent(...) / class VectorAgent (batched: all lanes in one call) or make_agent(...) / class Agent (one lane per object); see the README."),
-    suite: str = typer.Option("narrow-v1", help="Suite name (narrow-v1, wide-v1: the paper's; narrow-v2, wide-v2: recommended for adaptation) or path."),
+    suite: str = typer.Option(DEFAULT_SUITE, help="Suite name (narrow-v2, wide-v2: built to measure adaptation; narrow-v1, wide-v1: the paper's) or path."),
     seeds: str = typer.Option("default", show_default=False, help="Number of seeds (0..n-1) or a comma list, e.g. 0,1,2; default: "
                               f"{DEFAULT_SEEDS_HELP} (ranked runs use exactly these)."),
     out: Path = typer.Option(None, help="Results file (default: results/<agent>-<suite>.json)."),
@@ -175,7 +176,7 @@ def record(
     policy: str = typer.Option(..., help="A baseline policy (random, random-task-specific, max-expected, "
                                          "toptimal(rho1=R1,rho2=R2,q=Q)) or an agent .py file."),
     out: Path = typer.Option(..., help="Dataset folder to create (LeRobot v3.0; must not exist)."),
-    suite: str = typer.Option("narrow-v1", help="Suite name or path."),
+    suite: str = typer.Option(DEFAULT_SUITE, help="Suite name or path."),
     seeds: str = typer.Option("1", help="Number of seeds (0..n-1) or a comma list."),
     repo_id: str = typer.Option(None, help="LeRobot repo id of the dataset (default: mewa/<folder name>)."),
     fps: int = typer.Option(10, help="Frames per second stored in the dataset."),
@@ -218,16 +219,12 @@ def record(
 def view(file: Path = typer.Argument(..., metavar="FILE", help="A Rerun recording (.rrd) written with --log rerun."),
          web: bool = typer.Option(False, "--web", metavar="", help="Serve the web viewer on 127.0.0.1 instead of opening a window."),
          port: int = typer.Option(None, help="Port of the web viewer.")) -> None:
-    """Open a Rerun recording in the Rerun viewer."""
-    import os
-
+    """Open a Rerun recording in the Rerun viewer (a native window, or with --web the web viewer)."""
     from mewa_bench.logs.view import ViewerError, open_viewer
 
     if file.suffix != ".rrd":
         console.print(f"[red]error:[/red] {file} is not a Rerun recording (.rrd); MCAP files open in Foxglove")
         raise typer.Exit(1)
-    if not web and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        console.print("[yellow]no display found: the native viewer needs one; use --web for the web viewer[/yellow]")
     try:
         code = open_viewer(file, web=web, web_port=port)
     except ViewerError as e:
@@ -380,7 +377,7 @@ def _suite_content(kind: str, validation: bool, address: str | None, progress: C
 def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pearl, maml or dpt (offline) "
                                                               "(mewa_bench.agents.training_io.ALGORITHMS)."),
           suite: str = typer.Option(None, help="Suite whose tasks and meta-train workers it trains on (default: "
-                                               "narrow-v1; an offline run's is its dataset's)."),
+                                               f"{DEFAULT_SUITE}; an offline run's is its dataset's)."),
           seed: list[int] = typer.Option([1], "--seed", help="Training seed (repeatable: one run per seed; "
                                                            "runs are deterministic given it)."),
           steps: int = typer.Option(None, min=1, help="Env steps to train for (default 4,000,000; dpt: "
@@ -437,7 +434,7 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
     jobs = []
     for s in dict.fromkeys(seed):  # each seed once, in the order given
         try:
-            settings = whole_updates(module.settings_from({**overrides, **offline, "suite": suite or "narrow-v1",
+            settings = whole_updates(module.settings_from({**overrides, **offline, "suite": suite or DEFAULT_SUITE,
                                                            "seed": s, "total_steps": steps,
                                                            "workers": workers_arg(worker)}))
         except ValueError as e:
@@ -613,12 +610,14 @@ def datasets_list(catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None
 @datasets_app.command("info")
 def datasets_info(name: str = typer.Argument(..., metavar="NAME", help="Dataset name (or name@version)."),
                   catalog: Path = typer.Option(None, help=CATALOG_HELP)) -> None:
-    """Everything the catalog says about one dataset (a recording of the test pairs says so first)."""
-    from mewa_bench.datasets.catalog import EVALUATION_WARNING, TRAINING, dataset_info, entry_kind, load_catalog
+    """Everything known about one dataset: a catalog entry (a recording of the test pairs says so first), or a
+    training dataset `datasets build` makes, with its build command."""
+    from mewa_bench.datasets.catalog import load_catalog
+    from mewa_bench.datasets.lookup import describe
 
-    entry = _or_exit(lambda: dataset_info(load_catalog(catalog), name))
-    if entry_kind(entry) != TRAINING:
-        console.print(f"[bold red]warning:[/bold red] {escape(EVALUATION_WARNING)}")
+    entry, warning = _or_exit(lambda: describe(load_catalog(catalog), name))
+    if warning:
+        console.print(f"[bold red]warning:[/bold red] {escape(warning)}")
     table = Table(show_header=False, box=None)
     for key, value in entry.items():
         table.add_row(f"[bold]{key}[/bold]", escape(str(value)))
@@ -635,6 +634,7 @@ def datasets_download(source: str = typer.Argument(..., metavar="SOURCE", help="
     """Download, verify (size, sha256, episode and frame counts) and unpack a dataset atomically."""
     from mewa_bench.datasets.catalog import DatasetError, load_catalog
     from mewa_bench.datasets.downloader import download
+    from mewa_bench.datasets.lookup import download_warning
 
     if server is not None:
         from mewa_bench.service.client import server_catalog
@@ -647,6 +647,9 @@ def datasets_download(source: str = typer.Argument(..., metavar="SOURCE", help="
             content = load_catalog()
         except DatasetError:
             content = None  # no catalog here: URLs and repo ids still work
+    warning = _or_exit(download_warning, content, source)
+    if warning:
+        console.print(f"[bold red]warning:[/bold red] {escape(warning)}")
     with Progress(TextColumn("{task.description}"), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
                   console=console, transient=True) as bar:
         task = bar.add_task(f"downloading {source}", total=None)

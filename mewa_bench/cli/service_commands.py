@@ -14,6 +14,8 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from mewa_bench.design.suites import DEFAULT_SUITE
+
 console = Console()
 DATA_DIR_HELP = "The service's data dir: uploads, job results, hidden suites, and the SQLite database by default."
 DB_HELP = "Database URL (default: SQLite in the data dir), e.g. postgresql://USER:PASSWORD@HOST:5432/DB."
@@ -229,7 +231,7 @@ def submit(file: Path = typer.Argument(..., metavar="FILE", exists=True, dir_oka
                                        help="A results file (.json) of `mewa-bench evaluate`, or an agent file (.py)."),
            server: str = typer.Option(..., envvar="MEWA_SERVER", help=SERVER_HELP),
            token: str = typer.Option(None, help=TOKEN_HELP),
-           suite: str = typer.Option("narrow-v1", help="Agents: the public suite to evaluate on (and its hidden twin)."),
+           suite: str = typer.Option(DEFAULT_SUITE, help="Agents: the public suite to evaluate on (and its hidden twin)."),
            name: str = typer.Option(None, help="Agents: the name on the boards (default: from the file name)."),
            checkpoint: Path = typer.Option(None, help="Agents: a .tar(.gz), or a file or folder to pack; unpacked "
                                                       "beside the agent file on the server."),

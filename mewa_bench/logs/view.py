@@ -79,12 +79,21 @@ def _raise_stopped(signum: int, frame: FrameType | None) -> None:
     raise _Stopped(signum)
 
 
+def has_display() -> bool:
+    """Whether a native window can open here (an X11 or Wayland display is set)."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def open_viewer(path: Path, web: bool = False, web_port: int | None = None) -> int:
     """Open the log in the Rerun viewer and wait until it is closed; returns the viewer's exit code.
 
+    Without a display the native viewer is refused before anything starts (it would open a server and fail);
     Ctrl-C, SIGTERM and SIGHUP stop the viewer too (a web viewer left running would hold its port).
     """
     command = viewer_command(path, web=web, web_port=web_port)
+    if not web and not has_display():
+        raise ViewerError("no display found (DISPLAY and WAYLAND_DISPLAY are unset): the native viewer needs one; "
+                          "use --web to serve the web viewer on 127.0.0.1 and open it in a browser")
     if web:
         check_web_port(web_port or DEFAULT_WEB_PORT)
     previous = {sig: signal.signal(sig, _raise_stopped) for sig in STOP_SIGNALS}

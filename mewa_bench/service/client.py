@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from mewa_bench.design.suites import DEFAULT_SUITE
 from mewa_bench.extras import require
 
 TOKEN_ENV = "MEWA_TOKEN"
@@ -92,7 +93,7 @@ def checkpoint_archive(path: Path) -> tuple[str, bytes]:
     return f"{path.name}.tar.gz", buffer.getvalue()
 
 
-def submit(server: str, file: Path, token: str | None, suite: str = "narrow-v1", name: str | None = None,
+def submit(server: str, file: Path, token: str | None, suite: str = DEFAULT_SUITE, name: str | None = None,
            checkpoint: Path | None = None, agent_args: dict[str, str] | None = None,
            algorithm: str | None = None) -> dict[str, Any]:
     """Upload a results file (.json) or an agent (.py, with an optional checkpoint); returns the server's answer.

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
+from mewa_bench.design.suites import DEFAULT_SUITE
 from mewa_bench.service.errors import ApiError, not_found
 from mewa_bench.service.faults import crash_point
 from mewa_bench.service.jobs import STOPPED
@@ -144,7 +145,7 @@ def submit_results(request: Request, file: UploadFile = File(..., description="A
 def submit_agent(request: Request,
                  agent: UploadFile = File(..., description="The agent: a .py file with make_agent(...) or class Agent."),
                  checkpoint: UploadFile | None = File(None, description="Optional .tar(.gz), unpacked beside the agent file."),
-                 suite: str = Form("narrow-v1", description="The public suite to evaluate on (and its hidden twin)."),
+                 suite: str = Form(DEFAULT_SUITE, description="The public suite to evaluate on (and its hidden twin)."),
                  name: str | None = Form(None, description="The agent's name on the boards (default: the file name)."),
                  agent_arg: list[str] = Form([], description="key=value passed to make_agent (repeatable)."),
                  algorithm: str | None = Form(None, description="The algorithm this run is one training run of "
