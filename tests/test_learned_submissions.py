@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -15,8 +16,28 @@ CHECKPOINTED = sorted(p for p in SUBMISSIONS.glob("*/results-*.json") if (p.pare
 SAMPLE_PAIRS, SAMPLE_SEEDS = (0, 1), (0, 1)  # the whole file would take minutes per checkpoint
 
 
+def algorithm_of(results_path: Path) -> str:
+    """The algorithm a shipped run belongs to (its run.json, else the folder name up to the suite)."""
+    run = results_path.parent / "run.json"
+    if run.exists():
+        return json.loads(run.read_text())["algorithm"]
+    return results_path.parent.name.split("-narrow-")[0].split("-wide-")[0]
+
+
+def one_per_algorithm(paths: list[Path]) -> set[Path]:
+    """The first shipped run of each algorithm: their replays run by default, every other one in the slow tier."""
+    firsts: dict[str, Path] = {}
+    for path in paths:
+        firsts.setdefault(algorithm_of(path), path)
+    return set(firsts.values())
+
+
+DEFAULT_TIER = one_per_algorithm(CHECKPOINTED)
+
+
 @pytest.mark.skipif(not CHECKPOINTED, reason="no learned submissions shipped")
-@pytest.mark.parametrize("results_path", CHECKPOINTED, ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize("results_path", [p if p in DEFAULT_TIER else pytest.param(p, marks=pytest.mark.slow)
+                                          for p in CHECKPOINTED], ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_a_shipped_checkpoint_replays_its_committed_units(results_path: Path, tmp_path: Path) -> None:
     committed = read_results(results_path)
     config = EvalConfig(agent_path=results_path.parent / "agent.py", suite=committed["suite"]["name"],

@@ -47,9 +47,18 @@ def test_a_shipped_wide_run_round_trips_exactly_in_under_a_megabyte(tmp_path: Pa
     back = read_results(path)
     assert same_units(sorted(old["units"], key=unit_key), back["units"]) is None  # floats bit for bit
     assert back["units"] == sorted(old["units"], key=unit_key)
-    assert as_schema(back, 2) == {**old, "units": back["units"]}  # every other field as it was
+    assert as_schema(back, old["schema_version"]) == {**old, "units": back["units"]}  # every other field as it was
     write_results(tmp_path / "again.json", back)
     assert (tmp_path / "again.json").read_bytes() == path.read_bytes()  # the same results, the same bytes
+
+
+def test_every_shipped_results_file_is_compact_and_at_most_a_megabyte() -> None:
+    shipped = sorted(SUBMISSIONS.glob("*/results-*.json"))
+    assert len(shipped) >= 20
+    heavy = [f"{p.relative_to(SUBMISSIONS)}: {p.stat().st_size:,} bytes" for p in shipped if p.stat().st_size > MB]
+    assert heavy == [], "rewrite them: mewa-bench results convert FILE (see the README)"
+    for path in shipped:
+        assert json.loads(path.read_text())["schema_version"] == 3, f"{path}: not in the compact schema-3 layout"
 
 
 def rescored_copy(folder: Path, seeds: int | None = None) -> Path:
