@@ -10,6 +10,10 @@ import pytest
 
 from mewa_bench.game import Task
 
+# A COLUMNS inherited by pytest-xdist's workers would fix the width of the CLI's rich console when it is
+# created at import; without it the console reads COLUMNS at each print, as the CLI tests set it.
+os.environ.pop("COLUMNS", None)
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "tests" / "data"
 # A copy of shared/reference/traces-canonical.json ships here, so a fresh clone tests without shared/;

@@ -59,6 +59,7 @@ def test_shipped_runs_state_the_env_steps_they_trained() -> None:
 
 def test_train_set_changes_settings_under_an_algorithm_name_of_its_own(tmp_path: Path) -> None:
     pytest.importorskip("torch")
+    from mewa_bench.design.suites import DEFAULT_SUITE
     from mewa_bench.protocol.run_info import read_run_info
 
     result = CliRunner().invoke(app, ["train", "varibad", "--steps", "1", "--set", "latent=3", "--set",
@@ -66,7 +67,7 @@ def test_train_set_changes_settings_under_an_algorithm_name_of_its_own(tmp_path:
                                       "--out", str(tmp_path)], env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     for seed in (2, 3):
-        folder = tmp_path / f"varibad-small-narrow-v1-seed{seed}"
+        folder = tmp_path / f"varibad-small-{DEFAULT_SUITE}-seed{seed}"  # the default suite
         info = read_run_info(folder)
         assert (info.algorithm, info.seed, info.settings) == ("varibad-small", seed, {"latent": 3, "step_rewards": True})
         readme = (folder / "README.md").read_text()

@@ -117,6 +117,7 @@ def test_resume_continues_from_the_last_checkpoint(tmp_path: Path) -> None:
     assert (state["update"], state["settings"]["d_model"]) == (4, 16)
 
 
+@pytest.mark.slow  # the full learning budget; the by-hand, determinism, resume and play tests run by default
 def test_dpt_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_path: Path) -> None:
     """The learning test: trained on random play labelled with the exact optimal actions (1,000 updates, about 2
     minutes on one core), DPT improves from episode 1 to 10, judged under the protocol's loop on 60 seeds per worker

@@ -140,6 +140,7 @@ def beats_random_task_specific(agent, task, workers: np.ndarray, seeds: int) -> 
     return float(gain.mean()), float(1.96 * gain.std(ddof=1) / np.sqrt(len(gain)))
 
 
+@pytest.mark.slow  # the full learning budget; the by-hand, determinism, resume and play tests run by default
 def test_maml_beats_random_task_specific_on_its_training_distribution(tmp_path: Path) -> None:
     """The learning test: 1 M steps on narrow-v1's meta-train workers (about 2 min on one core);
     on 100 fresh workers from that distribution (4 seeds x 10 episodes each) the agent's mean score is

@@ -196,6 +196,7 @@ def play_pairs(agent: PEARLAgent, task, workers: np.ndarray, seeds: int) -> np.n
     return out
 
 
+@pytest.mark.slow  # the full learning budget; the by-hand, determinism, resume and play tests run by default
 def test_pearl_beats_random_task_specific_on_its_training_distribution(tmp_path: Path) -> None:
     """The learning test: 600 k steps on narrow-v1's meta-train workers (about 2-3 min on one
     core); on 100 fresh workers from that distribution (4 seeds x 10 episodes each) the agent's mean

@@ -129,6 +129,7 @@ def play_pairs(checkpoint: Path, task, workers: list[tuple[float, ...]], seeds: 
     return out
 
 
+@pytest.mark.slow  # the full learning budget; the by-hand, determinism, resume and play tests run by default
 def test_rl2_learns_to_adapt_to_two_opposite_workers(tmp_path: Path) -> None:
     """The learning test: greedy building is perfect for (0,1,1,1) and fails for (1,1,1,0), and
     the reverse for parallel building; trained for 4 M steps (about 2 min on one core), RL^2 improves

@@ -286,6 +286,7 @@ LEARNING = {"total_steps": 4_000_000, "num_envs": 128, "num_steps": 64, "update_
             "ent_coef": 0.003, "workers": TWO_WORKERS, "seed": 1, "checkpoint_every": 1000}
 
 
+@pytest.mark.slow  # the full learning budget; the by-hand, determinism, resume and play tests run by default
 def test_varibad_learns_to_adapt_to_two_opposite_workers(tmp_path: Path) -> None:
     """The learning test: greedy building is perfect for (0,1,1,1) and fails for (1,1,1,0), and
     the reverse for parallel building; trained on them, VariBAD improves from episode 1 to 10 and beats

@@ -562,7 +562,7 @@ app.add_typer(results_app, name="results")
 
 @results_app.command("convert")
 def results_convert(files: list[Path] = typer.Argument(..., metavar="FILE", help="Results files to rewrite."),
-                    rescore: bool = typer.Option(False, help="Recompute the scores from the units (for a file scored "
+                    rescore: bool = typer.Option(False, "--rescore", metavar="", help="Recompute the scores from the units (for a file scored "
                                                  "by an older mewa-bench) instead of checking the stored ones.")) -> None:
     """Rewrite schema-2 results files as schema 3 (compact units), each after checking it: its units, env seeds
     and scores must come back exactly; a file that fails a check is left as it was."""
