@@ -394,7 +394,7 @@ def confined_child_main() -> None:
 
     It runs with a clean import path (`python -I` in /): nothing it imports comes from a place the agent can write.
     """
-    from mewa_bench.protocol.isolation import _child_main
+    from mewa_bench.protocol.agent_child import _child_main
 
     settings = json.loads(os.environ.pop(_SETTINGS_VARIABLE))
     cpu = settings["cpu_seconds"]
