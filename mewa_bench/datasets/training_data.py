@@ -8,6 +8,9 @@ protocol's (`training_keys`), every frame labelled with the exact known-worker o
 (a superset of Minari's metadata). Workers and keys are checked when the dataset is built and
 again when it is loaded (`load_training_dataset`) or downloaded: one curated worker of any suite or
 one protocol luck key and the dataset is refused.
+
+This file is longer than 500 lines because the build and the reading share the format: the frame
+columns and the metadata written here are the ones checked again on loading, beside them.
 """
 
 from __future__ import annotations

@@ -43,6 +43,10 @@ which talks to it over two pipes) is started inside the sandbox, through a `Laun
 
 A resumed evaluation continues from the units in the results file (`evaluate(resume=True)`);
 the scores are byte for byte those of `mewa-bench evaluate` with the same agent file and seeds.
+
+This file is longer than 500 lines because the sandbox is one set of rules, read and checked together:
+the list above, the bwrap command that mounts them and the confinement the agent process applies to
+itself (rlimits, seccomp, the audit hook) before the agent loads.
 """
 
 from __future__ import annotations
