@@ -56,12 +56,12 @@ def play(env: gym.Env, seed: int, n_episodes: int = 5) -> list[tuple]:
 
 
 def test_same_seed_same_trajectory_different_seed_different(canonical_task: Task) -> None:
-    a = play(MewaEnv(task=canonical_task), seed=7)
-    b = play(MewaEnv(task=canonical_task), seed=7)
-    c = play(MewaEnv(task=canonical_task), seed=8)
+    a = play(MewaEnv(task=canonical_task, events=True), seed=7)
+    b = play(MewaEnv(task=canonical_task, events=True), seed=7)
+    c = play(MewaEnv(task=canonical_task, events=True), seed=8)
     assert a == b
     assert a != c
-    fixed = dict(task=canonical_task, worker=(0.5, 0.5, 0.5, 0.5))
+    fixed = dict(task=canonical_task, worker=(0.5, 0.5, 0.5, 0.5), events=True)
     assert play(MewaEnv(**fixed), seed=1) == play(MewaEnv(**fixed), seed=1)
     assert play(MewaEnv(**fixed), seed=1) != play(MewaEnv(**fixed), seed=2)
 
@@ -69,7 +69,7 @@ def test_same_seed_same_trajectory_different_seed_different(canonical_task: Task
 def test_mistake_frequencies_match_the_worker(canonical_task: Task) -> None:
     """Per mistake type x, the fraction of second blocks that got a mistake is w_x (binomial z-test)."""
     w = (0.7, 0.45, 0.3, 0.15)
-    env = MewaEnv(task=canonical_task, worker=w)
+    env = MewaEnv(task=canonical_task, worker=w, events=True)
     env.reset(seed=2024)
     rng = np.random.default_rng(5)
     trials, hits = np.zeros(4), np.zeros(4)
@@ -155,7 +155,7 @@ def test_train_and_test_regions_never_overlap(canonical_task: Task) -> None:
 
 
 def test_info_reports_events_and_normalised_return(canonical_task: Task) -> None:
-    env = MewaEnv(task=canonical_task, worker=(0, 0, 0, 0))
+    env = MewaEnv(task=canonical_task, worker=(0, 0, 0, 0), events=True)
     env.reset(seed=0)
     kinds = []
     for c in canonical_task.order:

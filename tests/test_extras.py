@@ -153,3 +153,29 @@ def test_the_cli_reports_a_missing_extra_through_or_exit(tmp_path: Path, monkeyp
     assert "needs the train extra (torch is not installed): pip install 'mewa-bench[train]'" in " ".join(
         result.output.split())
     assert "Traceback" not in result.output
+
+
+# -- (d) Gymnasium's checker on a core install ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("env_id", ["mewa/MEWA-v0", "mewa/MEWA-Meta-v0"])
+def test_check_env_passes_without_the_extras(env_id: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Render modes included: without sapien the envs offer "ansi" only, and Gymnasium's checker is silent."""
+    import warnings
+
+    import gymnasium as gym
+    from gymnasium.utils.env_checker import check_env
+
+    import mewa_bench  # noqa: F401 - registers the env ids
+    from mewa_bench.envs import MewaEnv
+
+    for package in ("sapien", "torch", "lerobot", "rerun", "mcap"):
+        hide(monkeypatch, package)
+    env = gym.make(env_id, disable_env_checker=True)
+    assert env.metadata["render_modes"] == ["ansi"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env)
+    # The one warning left says the env is wrapped (gym.make's order enforcing, MEWA-Meta's MetaEpisode).
+    assert [str(w.message) for w in caught if "different from the unwrapped" not in str(w.message)] == []
+    with pytest.raises(Exception, match="needs the sapien extra"):
+        MewaEnv(render_mode="rgb_array")

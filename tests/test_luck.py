@@ -56,7 +56,7 @@ def _play(env: MewaEnv, actions: list[int], **options: object) -> list[tuple]:
 
 def test_the_key_fixes_the_luck_and_the_draws_follow_the_rule(canonical_task: Task) -> None:
     worker = (0.5, 0.5, 0.5, 0.5)
-    env = MewaEnv(task=canonical_task, worker=worker)
+    env = MewaEnv(task=canonical_task, worker=worker, events=True)
     actions = [int(a) for a in np.random.default_rng(3).integers(0, 4, size=100)]
     assert _play(env, actions, luck_key=77) == _play(env, actions, luck_key=77)
     # the rule, re-derived here: the j-th second block of colour c is a mistake iff u(key, c, j) < w[x]
@@ -94,7 +94,7 @@ def test_batched_and_scalar_envs_play_the_same_episodes_for_the_same_keys(canoni
             actions[i].append(int(a[i]))
             steps[i].append((tuple(obs[i]), float(r[i]), bool(term[i]), bool(trunc[i])))
         done |= term | trunc
-    env = MewaEnv(task=canonical_task, worker=worker)
+    env = MewaEnv(task=canonical_task, worker=worker, events=True)
     for i in range(n):
         scalar = _play(env, actions[i], luck_key=int(keys[i]))
         assert [scalar[0]] + [s[:4] for s in scalar[1:]] == steps[i], f"sub-env {i}"

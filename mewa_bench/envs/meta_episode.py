@@ -17,6 +17,7 @@ from typing import Any, Sequence
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from mewa_bench.envs.batched import MewaVectorEnv
@@ -102,10 +103,13 @@ class MetaEpisodeVectorEnv(MewaVectorEnv):
     """`num_envs` meta-episodes stepped together: `MetaEpisode`'s layout at the batched env's speed.
 
     Each sub-env plays `episodes` inner episodes on one (task, worker) pair (a new luck key each),
-    then ends its meta-episode (terminated or truncated as the last inner episode was) and, on the
-    next step, starts a new one on a new pair (`AutoresetMode.NEXT_STEP`: that step ignores the
-    action and returns the first observation with reward 0). The step that ends an inner episode
-    other than the last returns the first observation of the next one, new-episode flag set.
+    then ends its meta-episode (terminated or truncated as the last inner episode was). The step
+    that ends an inner episode other than the last returns the first observation of the next one,
+    new-episode flag set. What follows the end of a meta-episode is the `autoreset_mode`'s, as in
+    `MewaVectorEnv`: in NEXT_STEP (default) the next step ignores the action and returns the first
+    observation of a new meta-episode on a new pair with reward 0; SAME_STEP and DISABLED as there.
+    Seeds as in `MewaVectorEnv`: with a list, lane i plays what `MetaEpisode(MewaEnv())` plays after
+    `reset(seed=s_i)`, in every mode; with an int, SAME_STEP and DISABLED play the same meta-episodes.
 
     `infos`: `progress`, `episode_in_trial` (the inner episode each step belonged to), `inner_done`
     and, on steps where inner episodes end, `episode_return` and `normalised_return` with their
@@ -115,25 +119,39 @@ class MetaEpisodeVectorEnv(MewaVectorEnv):
     def __init__(self, num_envs: int = 1, episodes: int = 10, task: Task | dict | None = None,
                  worker: Sequence[float] | None = None, tasks: Sequence[Task | dict] | None = None,
                  include_centre: bool = False, render_mode: str | None = None,
-                 workers: Sequence[Sequence[float]] | None = None) -> None:
+                 workers: Sequence[Sequence[float]] | None = None,
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP) -> None:
         if episodes < 1:
             raise ValueError(f"episodes must be >= 1, got {episodes}")
-        super().__init__(num_envs, task, worker, tasks, include_centre, render_mode, workers)
+        super().__init__(num_envs, task, worker, tasks, include_centre, render_mode, workers, autoreset_mode)
         self.episodes = episodes
         self.single_observation_space = meta_observation_space(self.tasks)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self._inner = np.zeros(num_envs, dtype=np.int64)
+        self._last_obs = np.zeros((num_envs, META_OBS_SIZE), dtype=np.float32)  # for masked resets
 
-    def reset(self, *, seed: int | Sequence[int] | None = None,
+    def reset(self, *, seed: int | Sequence[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start a meta-episode in every sub-env (options as `MewaVectorEnv.reset`)."""
+        """Start a meta-episode in every sub-env, or in those of `options["reset_mask"]` (as `MewaVectorEnv.reset`)."""
+        if options and "reset_mask" in options:
+            self._last_obs, info = super().reset(seed=seed, options=options)
+            return self._last_obs.copy(), info
         obs, info = super().reset(seed=seed, options=options)
         self.single_observation_space = meta_observation_space(self.tasks)  # options may change the task
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self._inner[:] = 0
         zeros = np.zeros(self.num_envs)
-        return meta_observation(obs, np.full(self.num_envs, -1), zeros, zeros), {
-            **info, "episode_in_trial": self._inner.copy()}
+        self._last_obs = meta_observation(obs, np.full(self.num_envs, -1), zeros, zeros)
+        return self._last_obs.copy(), {**info, "episode_in_trial": self._inner.copy()}
+
+    def _begin(self, rows: np.ndarray, current: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start new meta-episodes in `rows`; every sub-env's observation and infos afterwards."""
+        _, info = super()._begin(rows)
+        self._inner[rows] = 0
+        obs = (self._last_obs if current is None else current).copy()
+        zeros = np.zeros(len(rows))
+        obs[rows] = meta_observation(self._stack.obs[self._state[rows]], np.full(len(rows), -1), zeros, zeros)
+        return obs, {**info, "episode_in_trial": self._inner.copy()}
 
     @property
     def episode_in_trial(self) -> np.ndarray:
@@ -153,7 +171,8 @@ class MetaEpisodeVectorEnv(MewaVectorEnv):
         if following.size:
             self._inner[following] += 1
             self._start_episodes(following, new_pairs=False)
-        self._needs_reset = last
         previous = np.where(resetting, -1, np.asarray(actions))
         obs = meta_observation(st.obs[self._state], previous, reward, inner_done & ~last)
-        return obs, reward, inner_terminated & last, inner_truncated & last, infos
+        obs, infos = self._autoreset(last, obs, infos)
+        self._last_obs = obs
+        return obs.copy(), reward, inner_terminated & last, inner_truncated & last, infos

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import importlib.util
 from typing import Any, NamedTuple, Sequence
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from mewa_bench.envs.pairs import PairSource, as_task
+from mewa_bench.envs.pairs import SCALAR_PAIR_BATCH, PairSource, as_task
 from mewa_bench.game import luck
 from mewa_bench.game.normalise import return_bounds
 from mewa_bench.game.palette import (COLOR_NAMES, NUM_COLORS, OBS_AGENT_BLOCKS, OBS_COMPLETED, OBS_MISTAKE_FLAGS,
@@ -17,9 +18,9 @@ from mewa_bench.game.table import transition_table
 from mewa_bench.game.task import Task, Worker
 
 ENV_VERSION = "v0"
+RENDER_MODES = ("ansi", "rgb_array")  # rgb_array: the SAPIEN picture, with the sapien extra
 OBSERVATION_MODES = ("vector", "sapien")
 DEFAULT_IMAGE_SIZE = (128, 128)  # (height, width)
-_PAIR_BATCH = 64
 
 
 class MewaEnv(gym.Env):
@@ -66,9 +67,11 @@ class MewaEnv(gym.Env):
     same luck where their paths allow (`reset(options={"luck_key": k})`, `env.luck_key`).
 
     ## Information
-    `info["progress"]` (sub-goals reached), `info["events"]` (a tuple of `Event`s: `mistake`,
-    `structure_completed`, `structure_returned`, `subgoal_reached`), and at the end of an episode
-    `info["episode_return"]` and `info["normalised_return"]` (SPEC section 2: 0 = worst, 1 = perfect).
+    `info["progress"]` (sub-goals reached), at the end of an episode `info["episode_return"]` and
+    `info["normalised_return"]` (SPEC section 2: 0 = worst, 1 = perfect), and with `events=True`
+    `info["events"]` (a tuple of `Event`s: `mistake`, `structure_completed`, `structure_returned`,
+    `subgoal_reached`). Events are off by default so that every info entry is a number, which
+    generic readers (vector envs' info stacking, TorchRL) can batch.
 
     ## Arguments
     ```python
@@ -80,6 +83,7 @@ class MewaEnv(gym.Env):
       worker is sampled from the task's distribution at every reset.
     - `tasks`: several tasks; each reset samples one uniformly, then a meta-train worker.
     - `include_centre`: also sample meta-train workers from the centre band (see `distributions`).
+    - `events=True`: report each step's game events in `info["events"]` (logs use them).
     - `mode="sapien"`: observations become `{"state": float32[18], "image": uint8[H, W, 3]}`, the
       scene rendered headless by SAPIEN (`image_size=(H, W)`, default 128 x 128); same rules.
       `render_mode="rgb_array"` returns that image, `render_mode="ansi"` a text picture.
@@ -93,17 +97,18 @@ class MewaEnv(gym.Env):
       given seed gives other episodes than the protocol-1 code did).
     """
 
-    metadata: dict[str, Any] = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
+    metadata: dict[str, Any] = {"render_modes": list(RENDER_MODES), "render_fps": 4}
 
     def __init__(self, task: Task | dict | None = None, worker: Sequence[float] | None = None,
                  tasks: Sequence[Task | dict] | None = None, include_centre: bool = False,
                  render_mode: str | None = None, mode: str = "vector",
-                 image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode {render_mode!r} is not one of {self.metadata['render_modes']}")
+                 image_size: tuple[int, int] = DEFAULT_IMAGE_SIZE, events: bool = False) -> None:
+        self.metadata = {**MewaEnv.metadata, "render_modes": available_render_modes()}
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ValueError(f"render_mode {render_mode!r} is not one of {list(RENDER_MODES)}")
         if mode not in OBSERVATION_MODES:
             raise ValueError(f"mode {mode!r} is not one of {', '.join(OBSERVATION_MODES)}")
-        self.render_mode, self.mode = render_mode, mode
+        self.render_mode, self.mode, self.events = render_mode, mode, bool(events)
         self.image_size = (int(image_size[0]), int(image_size[1]))
         self._renderer: Any = None
         self.action_space = spaces.Discrete(NUM_COLORS)
@@ -115,6 +120,8 @@ class MewaEnv(gym.Env):
             self._image()  # fail now, with the install hint, if no render device is usable
         else:
             self.observation_space = state_space
+        if render_mode == "rgb_array" and render_mode not in self.metadata["render_modes"]:
+            self._image()  # sapien is missing: fail now, naming the extra
         self._source = PairSource.build(task, worker, tasks, include_centre)
         self._set_pair(self._source.tasks[0], self._source.worker or Worker((0.0,) * self._source.tasks[0].N))
         self._t = 0
@@ -175,7 +182,7 @@ class MewaEnv(gym.Env):
             self._source.check()
             self._pending.clear()
         if not self._pending:  # sampling pairs in batches makes resets ~50x cheaper
-            task_idx, workers = self._source.sample(self.np_random, _PAIR_BATCH)
+            task_idx, workers = self._source.sample(self.np_random, SCALAR_PAIR_BATCH)
             self._pending.extend(reversed(list(zip(task_idx.tolist(), workers.tolist()))))
         i, w = self._pending.pop()
         task = self._source.tasks[i]
@@ -196,7 +203,7 @@ class MewaEnv(gym.Env):
         self._t = 0
         self._return = 0.0
         self._done = False
-        return self._observe(0), {"progress": 0, "events": ()}
+        return self._observe(0), ({"progress": 0, "events": ()} if self.events else {"progress": 0})
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Hand over one block of colour `action`."""
@@ -221,7 +228,9 @@ class MewaEnv(gym.Env):
         self._return += reward
         terminated = f.terminal[s]
         truncated = self._t >= self._task.T and not terminated
-        info: dict[str, Any] = {"progress": f.progress[s], "events": f.event_sets[events]}
+        info: dict[str, Any] = {"progress": f.progress[s]}
+        if self.events:
+            info["events"] = f.event_sets[events]
         if terminated or truncated:
             self._done = True
             info["episode_return"] = self._return
@@ -252,6 +261,11 @@ class MewaEnv(gym.Env):
         if self.render_mode == "rgb_array":
             return self._image(getattr(self, "_s", 0))
         return None
+
+
+def available_render_modes() -> list[str]:
+    """The render modes this install supports: "ansi", and "rgb_array" if sapien can be imported."""
+    return list(RENDER_MODES) if importlib.util.find_spec("sapien") is not None else ["ansi"]
 
 
 def as_action(action: Any) -> int:

@@ -14,6 +14,8 @@ from mewa_bench.game.distributions import sample_meta_train_workers
 from mewa_bench.game.palette import NUM_COLORS
 from mewa_bench.game.task import Task, Worker
 
+SCALAR_PAIR_BATCH = 64  # pairs a scalar env (or a lane seeded on its own) samples per call of the sampler
+
 
 def as_task(value: Task | dict[str, Any]) -> Task:
     """Accept a Task or its JSON dict."""

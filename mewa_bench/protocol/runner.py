@@ -128,7 +128,7 @@ class _LanePlayer:
         if self.runner is None:
             n_lanes = min(c.lanes, len(units))  # a short run needs no more agents than units
             self.envs = [MewaEnv(task=self.suite.tasks[0], worker=self.suite.pairs[0].worker.w, mode=c.mode,
-                                 image_size=c.image_size) for _ in range(n_lanes)]
+                                 image_size=c.image_size, events=self.collect) for _ in range(n_lanes)]
             env = self.envs[0]
             try:
                 self.runner = make_agent_runner(c.agent_path, env.observation_space, env.action_space, c.agent_args,
