@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 from mewa_bench.agents import rl2
 from mewa_bench.datasets.downloader import download
 from mewa_bench.datasets.lerobot_recorder import LeRobotSink
+from mewa_bench.envs.sb3 import make_sb3_vec_env
 from mewa_bench.extras import MissingExtra, require
 from mewa_bench.logs import McapSink, RerunSink
 from mewa_bench.protocol.trajectory import RunInfo
@@ -21,8 +22,9 @@ from mewa_bench.protocol.trajectory import RunInfo
 REPO = Path(__file__).resolve().parents[1]
 PROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
 EXTRAS: dict[str, list[str]] = PROJECT["optional-dependencies"]
-HEAVY = {"torch", "lerobot", "sapien", "rerun-sdk", "mcap", "ray", "huggingface-hub"}
-RUNTIME_EXTRAS = {"logs", "datasets", "sapien", "train", "ray", "service"}
+HEAVY = {"torch", "lerobot", "sapien", "rerun-sdk", "mcap", "ray", "huggingface-hub", "stable-baselines3", "torchrl",
+         "minari"}
+RUNTIME_EXTRAS = {"logs", "datasets", "sapien", "train", "ray", "service", "interop"}
 RUN = RunInfo("a", "0" * 64, "narrow-v1", "1" * 64, (0,), 10, "mewa/MEWA-v0", "v0", "0.1.0")
 
 
@@ -104,6 +106,7 @@ CALL_SITES: dict[str, tuple[str, str, Callable[[Path], Any]]] = {
     "datasets download": ("huggingface_hub", "datasets", lambda tmp: download("someone/mewa-data", None, tmp / "d")),
     "train rl2": ("torch", "train", lambda tmp: rl2.train(rl2.Settings(total_steps=1), tmp / "run")),
     "rl2 checkpoint": ("torch", "train", lambda tmp: rl2.RL2Agent(tmp / "checkpoint.pt")),
+    "sb3 vec env": ("stable_baselines3", "interop", lambda tmp: make_sb3_vec_env(num_envs=2)),
 }
 
 
