@@ -10,7 +10,7 @@ from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, Trans
 from rich.table import Table
 
 from mewa_bench.cli.options import _ray_option
-from mewa_bench.cli.typer_app import _or_exit, console
+from mewa_bench.cli.typer_app import _or_exit, _print_error, console
 
 datasets_app = typer.Typer(no_args_is_help=True, help="List, inspect, build, download and pack offline datasets.")
 CATALOG_HELP = ("Dataset catalog (default: $MEWA_DATASETS_CATALOG, else datasets/index.json of the checkout, else the "
@@ -139,3 +139,24 @@ def datasets_build(name: str = typer.Argument(..., metavar="NAME", help="A train
         verdict = "[green]matches[/green]" if result.matches_record else "[yellow]differs from[/yellow]"
         console.print(f"the archive {verdict} the sha256 the shipped catalog records for this build")
     console.print(f"load it: mewa_bench.datasets.load_training_dataset('{result.root}')")
+
+
+@datasets_app.command("export")
+def datasets_export(source: str = typer.Argument(..., metavar="NAME_OR_DIR", help="A training dataset's folder, or its "
+                                                                                "name under --dir."),
+                    format: str = typer.Option("minari", "--format", help="Export format (minari)."),
+                    out: Path = typer.Option(..., "--out", help="Minari's datasets folder (use it as MINARI_DATASETS_PATH)."),
+                    dir: Path = typer.Option(Path("mewa-datasets"), "--dir", help="Where NAME is looked for."),
+                    dataset_id: str = typer.Option(None, "--id", help="Minari dataset id (default: the dataset's own, "
+                                                                      "e.g. mewa/narrow-v2-train-expert-v1).")) -> None:
+    """Export a training dataset to Minari's own format (arrow), with Minari's metadata."""
+    from mewa_bench.datasets.minari_export import export_minari, find_training_dataset
+
+    if format != "minari":
+        _print_error(ValueError(f"unknown --format {format!r}; expected minari"))
+        raise typer.Exit(1)
+    with console.status(f"exporting {source} to Minari"):
+        result = _or_exit(lambda: export_minari(find_training_dataset(source, dir), out, dataset_id))
+    console.print(f"[green]ok[/green] {result.path} ({result.episodes:,} episodes, {result.steps:,} steps)")
+    console.print(f"load it: MINARI_DATASETS_PATH={out} python -c \"import minari; "
+                  f"print(minari.load_dataset('{result.dataset_id}'))\"")

@@ -5,7 +5,7 @@ A dataset is named `<suite>-train-<tier>` (see `TRAINING_DATASETS`) and built by
 meta-train worker) each, played by the tier's behaviour (`tiers`) with luck keys disjoint from the
 protocol's (`training_keys`), every frame labelled with the exact known-worker optimal action
 (`labels`), written in bulk as a LeRobot v3.0 dataset (`bulk_writer`) with `meta/mewa.json`
-(a superset of Minari's metadata). Workers and keys are checked when the dataset is built and
+(its own metadata; `minari_export` writes Minari's). Workers and keys are checked when the dataset is built and
 again when it is loaded (`load_training_dataset`) or downloaded: one curated worker of any suite or
 one protocol luck key and the dataset is refused.
 
@@ -281,7 +281,7 @@ def _distribution(suite: Suite) -> list[dict[str, Any]]:
 
 def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episode: dict, frames: int,
               nearest: float) -> dict[str, Any]:
-    """Content of meta/mewa.json (a superset of Minari's dataset metadata)."""
+    """Content of meta/mewa.json (Minari-like names; `minari_export` maps it to Minari's own metadata)."""
     from importlib.metadata import PackageNotFoundError, version
 
     from mewa_bench import __version__
