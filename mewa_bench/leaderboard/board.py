@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from mewa_bench.design.suites import Suite
 from mewa_bench.leaderboard.validate import Entry
 from mewa_bench.protocol.aggregate import AlgorithmComparison
+from mewa_bench.protocol.verdicts import Family
 
 AGENT, PRIVILEGED, REFERENCE = "agent", "privileged", "reference"
 # The suite's reference lines (keys of suite.summary["score"] and ["skill"]) and their labels.
@@ -37,7 +38,7 @@ class Row:
     adaptability_high: float | None
     skill: float
     iqm: float | None = None
-    adapts: bool | None = None  # verdicts (None for reference lines)
+    adapts: bool | None = None  # the board's verdicts (`leaderboard.judging`; None for reference lines)
     beats_best_fixed: bool | None = None
     vs_best_fixed: float | None = None  # paired difference with the best fixed policy, and its CI
     vs_best_fixed_low: float | None = None
@@ -47,6 +48,9 @@ class Row:
     package_version: str = ""
     agent_sha256: str = ""
     file: str = ""
+    gap_won: float | None = None  # (mean - best fixed) / (1 - best fixed), from the paired difference, and its CI
+    gap_won_low: float | None = None
+    gap_won_high: float | None = None
 
 
 @dataclass(frozen=True)
@@ -58,21 +62,41 @@ class Board:
     rows: tuple[Row, ...]
     comparison: AlgorithmComparison | None = None
     algorithms: tuple = ()  # leaderboard.algorithms.AlgorithmRow
+    family: Family | None = None  # the verdicts' family: every test the board shows
+
+    @property
+    def best_fixed(self) -> float:
+        """The best fixed policy's exact mean score on the suite."""
+        return float(self.suite.summary["score"]["best_fixed"])
 
 
 def make_board(suite: Suite, entries: list[Entry], root_label: str) -> Board:
-    """Sort and rank the entries and merge in the reference lines, all by mean score; group them by algorithm."""
-    from mewa_bench.leaderboard.algorithms import algorithm_rows, compare_entries
+    """Sort and rank the entries and merge in the reference lines, all by mean score; group them by algorithm;
+    the verdicts over everything the board shows."""
+    from mewa_bench.leaderboard.algorithms import compare_entries, rows_of
+    from mewa_bench.leaderboard.judging import judge_board, with_gap_won
 
     ordered = sorted(entries, key=lambda e: (-e.scores.mean.mean, e.agent, str(e.path)))
     ranks = competition_ranks([e.scores.mean.mean for e in ordered if not e.privileged])
     ranked = iter(ranks)
-    rows = [entry_row(e, None if e.privileged else next(ranked), root_label) for e in ordered]
+    best_fixed = float(suite.summary["score"]["best_fixed"])
+    rows = [with_gap_won(entry_row(e, None if e.privileged else next(ranked), root_label), best_fixed)
+            for e in ordered]
+    runs = {run_name(e): row for e, row in zip(ordered, rows)}
     rows += reference_rows(suite)
     rows.sort(key=lambda r: (-r.mean, _KIND_ORDER[r.kind], r.name, r.file))
-    comparison = compare_entries(suite, ordered) if ordered else None
-    algorithms = algorithm_rows(suite, ordered, comparison) if comparison is not None else ()
-    return Board(suite, tuple(ordered), tuple(rows), comparison, algorithms)
+    if not ordered:
+        return Board(suite, (), tuple(rows))
+    comparison = compare_entries(suite, ordered)
+    privileged = {e.algorithm or e.agent for e in ordered if e.privileged}
+    algorithms = rows_of(best_fixed, comparison, privileged, runs=runs, pairs=len(suite.pairs))
+    judged = judge_board(rows, algorithms, runs, pairs=len(suite.pairs))
+    return Board(suite, tuple(ordered), judged.rows, comparison, judged.algorithms, judged.family)
+
+
+def run_name(entry: Entry) -> str:
+    """A run's name on a board and in a comparison: its results file's path (unique)."""
+    return str(entry.path)
 
 
 def competition_ranks(means: list[float]) -> list[int]:
@@ -91,7 +115,6 @@ def entry_row(entry: Entry, rank: int | None, root_label: str) -> Row:
                s_first=s.curve[0].mean, s_last=s.curve[-1].mean,
                adaptability=s.adaptability.mean, adaptability_low=s.adaptability.low,
                adaptability_high=s.adaptability.high, skill=s.skill.mean, iqm=s.iqm.mean,
-               adapts=s.verdicts["adapts"], beats_best_fixed=s.verdicts["beats_best_fixed"],
                vs_best_fixed=s.comparisons["best_fixed"].difference.mean,
                vs_best_fixed_low=s.comparisons["best_fixed"].difference.low,
                vs_best_fixed_high=s.comparisons["best_fixed"].difference.high, seeds=len(entry.seeds),
@@ -102,7 +125,9 @@ def entry_row(entry: Entry, rank: int | None, root_label: str) -> Row:
 def reference_rows(suite: Suite) -> list[Row]:
     """The suite's exact reference lines: fixed policies, so s_1 = s_10 and adaptability is 0."""
     score, skill = suite.summary["score"], suite.summary["skill"]
+    best_fixed = float(score["best_fixed"])
     return [Row(kind=REFERENCE, rank=None, name=label, mean=float(score[key]), mean_low=None, mean_high=None,
                 s_first=float(score[key]), s_last=float(score[key]), adaptability=0.0, adaptability_low=None,
-                adaptability_high=None, skill=float(skill[key]))
+                adaptability_high=None, skill=float(skill[key]),
+                gap_won=(float(score[key]) - best_fixed) / (1.0 - best_fixed))
             for key, label in REFERENCES]

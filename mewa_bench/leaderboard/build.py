@@ -1,7 +1,8 @@
 """`mewa-bench leaderboard`: validate every results file under `submissions/` and write the leaderboards.
 
-Per shipped suite: `<suite>.md`, `<suite>.csv` (checkpoints), `<suite>.png` and `<suite>-algorithms.csv`;
-plus one `index.html`. Invalid
+Per shipped suite: `<suite>.md`, `<suite>.csv` (checkpoints), `<suite>.png` (adaptation curves, a panel per
+algorithm), `<suite>-gap-won.png` (gap won per algorithm), `<suite>-algorithms.csv` and `<suite>-cells.csv`
+(algorithm, run, pair, adjusted pair-mean score: rliable's input); plus one `index.html`. Invalid
 results files are skipped and reported with the reason, never silently. The output depends only on
 the inputs (sorted iteration, no current timestamps), and every file is written atomically.
 """
@@ -13,10 +14,10 @@ from pathlib import Path
 
 from mewa_bench.design.suites import ALL_SUITES, load_suite
 from mewa_bench.files import write_atomic
-from mewa_bench.leaderboard import algorithm_tables
+from mewa_bench.leaderboard import algorithm_tables, cells
 from mewa_bench.leaderboard.board import Board, make_board
-from mewa_bench.leaderboard.plot import plot_curves
-from mewa_bench.leaderboard.render import csv_text, index_html, markdown
+from mewa_bench.leaderboard.plot import plot_curves, plot_gap_won
+from mewa_bench.leaderboard.render import cells_name, csv_text, gap_image, index_html, markdown
 from mewa_bench.leaderboard.validate import Entry, InvalidResults, SuiteCache, find_results_files, load_entry
 
 
@@ -55,16 +56,21 @@ def collect(submissions_dir: Path) -> tuple[dict[str, list[Entry]], list[tuple[P
     return entries, invalid
 
 
-def write_board(board: Board, out_dir: Path) -> tuple[Path, Path, Path, Path]:
-    """Write one suite's Markdown, checkpoints CSV, PNG and algorithms CSV."""
+def write_board(board: Board, out_dir: Path) -> tuple[Path, ...]:
+    """Write one suite's Markdown, checkpoints CSV, curves PNG, and (with runs) its algorithms CSV, cells CSV and
+    gap-won PNG."""
     name = board.suite.name
     md, csv_path, png = out_dir / f"{name}.md", out_dir / f"{name}.csv", out_dir / f"{name}.png"
-    algorithms = out_dir / f"{name}-algorithms.csv"
     write_atomic(md, markdown(board, png.name))
     write_atomic(csv_path, csv_text(board))
-    write_atomic(algorithms, algorithm_tables.csv_text(board.algorithms))
     plot_curves(board, png)
-    return md, csv_path, png, algorithms
+    written = [md, csv_path, png]
+    algorithms, cells_path, forest = (out_dir / f"{name}-algorithms.csv", out_dir / cells_name(name),
+                                      out_dir / gap_image(png.name))
+    write_atomic(algorithms, algorithm_tables.csv_text(board.algorithms))
+    write_atomic(cells_path, cells.csv_text(board))
+    plot_gap_won(board, forest)
+    return (*written, algorithms, cells_path, forest)
 
 
 def build_leaderboards(submissions_dir: Path, out_dir: Path) -> LeaderboardReport:

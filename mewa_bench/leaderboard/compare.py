@@ -1,24 +1,37 @@
 """`mewa-bench compare`: runs given as folders, results files or globs, grouped by algorithm, compared as algorithms.
 
 Every run must be a complete protocol run on the one suite, with the same seeds as the others, and
-listed once; anything else is refused with a message naming the file. Grouping follows run.json.
+listed once; anything else is refused with a message naming the file. A run's algorithm is, in order:
+the NAME of an `--algorithm NAME=GLOB` whose pattern names it, its folder's run.json, its folder's name
+(a submission folder, with agent.py), or else the agent name inside the results file; how each run was
+grouped is part of the result (`Compared.groupings`), never silent. Algorithms are listed in the order
+given (the --algorithm ones first, then the others by first appearance). Verdicts ("adapts", "beats
+best fixed", "X better") are decided together over everything the comparison shows (`judging`).
 """
 
 from __future__ import annotations
 
 import glob
 import hashlib
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 from mewa_bench.design.suites import Suite
-from mewa_bench.leaderboard.algorithms import entry_runs
+from mewa_bench.leaderboard.algorithms import AlgorithmRow, entry_runs, rows_of
+from mewa_bench.leaderboard.board import Row, entry_row, run_name
+from mewa_bench.leaderboard.judging import Judged, judge_board, with_gap_won
 from mewa_bench.leaderboard.validate import Entry, InvalidResults, SuiteCache, check_run, finished_date, verified_scores
 from mewa_bench.protocol.aggregate import AlgorithmComparison, aggregate
+from mewa_bench.protocol.config import default_seeds
 from mewa_bench.protocol.results import ResultsError, read_results
 from mewa_bench.protocol.run_info import RunInfoError, read_run_info
 from mewa_bench.protocol.scoring import Estimate, reference_line_cells
+from mewa_bench.protocol.verdicts import Test
+
+BY_OPTION, BY_RUN_JSON, BY_FOLDER, BY_AGENT = ("--algorithm", "run.json", "folder name",
+                                               "agent name in the results file")
 
 
 class CompareError(ValueError):
@@ -26,12 +39,38 @@ class CompareError(ValueError):
 
 
 @dataclass(frozen=True)
+class Grouping:
+    """How one run was assigned to its algorithm."""
+
+    path: Path
+    algorithm: str
+    by: str  # BY_OPTION (with its pattern), BY_RUN_JSON, BY_FOLDER or BY_AGENT
+
+
+@dataclass(frozen=True)
 class Compared:
-    """The suite, the runs (entries) and the algorithm-level comparison."""
+    """The suite, the runs (entries) and how each was grouped, the algorithm-level comparison (algorithms in the
+    order given), and the verdicts over everything shown: checkpoint rows, algorithm rows and P(X > Y) both ways."""
 
     suite: Suite
     entries: tuple[Entry, ...]
     comparison: AlgorithmComparison
+    groupings: tuple[Grouping, ...] = ()
+    judged: Judged | None = None
+
+    @property
+    def algorithms(self) -> tuple[AlgorithmRow, ...]:
+        """The judged algorithm rows, in the comparison's order."""
+        return self.judged.algorithms if self.judged is not None else ()
+
+    @property
+    def rows(self) -> tuple[Row, ...]:
+        """The judged checkpoint rows, in the entries' order."""
+        return self.judged.rows if self.judged is not None else ()
+
+    def better(self, x: str, y: str) -> bool | None:
+        """Whether "X better than Y" (P(X > Y) > 1/2) is a yes of the family (None: no interval)."""
+        return None if self.judged is None else self.judged.family.decision(better_key(x, y))
 
 
 def expand(items: Sequence[str], suite: str | None) -> list[Path]:
@@ -57,8 +96,16 @@ def expand(items: Sequence[str], suite: str | None) -> list[Path]:
     return paths
 
 
-def load_run(path: Path, suites: SuiteCache, suite: str | None, seeds: tuple[int, ...] | None) -> Entry:
-    """One run checked for comparison: complete, ranked-kind, on `suite`, with `seeds` (when given)."""
+def parse_algorithm(option: str) -> tuple[str, str]:
+    """`NAME=GLOB` as (name, glob)."""
+    name, sep, pattern = option.partition("=")
+    if not sep or not name.strip() or not pattern.strip():
+        raise CompareError(f"--algorithm {option!r}: expected NAME=GLOB, e.g. --algorithm 'mine=runs/mine-*'")
+    return name.strip(), pattern.strip()
+
+
+def read_run(path: Path, suite: str | None) -> dict[str, Any]:
+    """A results file that can be compared: complete, not partial, on `suite` (when given)."""
     try:
         results = read_results(path)
     except ResultsError as e:
@@ -69,96 +116,154 @@ def load_run(path: Path, suites: SuiteCache, suite: str | None, seeds: tuple[int
     name = results["suite"]["name"]
     if suite is not None and name != suite:
         raise CompareError(f"{path}: a run on {name}, not {suite}: runs of different suites are never compared")
+    return results
+
+
+def _seeds_text(seeds: tuple[int, ...]) -> str:
+    """`256 seeds (0..255)` or the list."""
+    if seeds == tuple(range(len(seeds))):
+        return f"{len(seeds)} seed{'s' if len(seeds) != 1 else ''} (0..{len(seeds) - 1})"
+    return f"{len(seeds)} seeds {list(seeds)}"
+
+
+def common_seeds(runs: Sequence[tuple[Path, dict[str, Any]]]) -> tuple[int, ...]:
+    """The seeds every run must have: the suite's default ones if any run used them, else the most common set
+    (ties: the first given); CompareError naming the first run that differs, whatever the order given."""
+    seed_sets = [tuple(r["seeds"]) if isinstance(r["seeds"], list) else () for _, r in runs]
+    default = default_seeds(runs[0][1]["suite"]["name"])
+    counts = Counter(seed_sets)
+    expected = default if default in counts else max(counts, key=lambda s: (counts[s], -seed_sets.index(s)))
+    for (path, _), seeds in zip(runs, seed_sets):
+        if seeds != expected:
+            fix = ("re-evaluate it with the protocol's default seeds (omit --seeds)" if expected == default
+                   else f"re-evaluate it with --seeds {len(expected) if expected == tuple(range(len(expected))) else ','.join(map(str, expected))}")
+            raise CompareError(f"{path}: evaluated with {_seeds_text(seeds)}, the other runs with "
+                               f"{_seeds_text(expected)}; runs are compared on the same seeds: {fix}")
+    return expected
+
+
+def load_run(path: Path, results: dict[str, Any], suites: SuiteCache, seeds: tuple[int, ...],
+             algorithm: str | None) -> tuple[Entry, Grouping]:
+    """One run checked for comparison, and how it was grouped (`algorithm`: named by --algorithm)."""
+    name = results["suite"]["name"]
     try:
-        checked_suite, run_seeds, units = check_run(results, suites, seeds if seeds is not None else
-                                                    tuple(results["seeds"]))
+        checked_suite, run_seeds, units = check_run(results, suites, seeds)
         scores = verified_scores(units, checked_suite, results["scores"])
         agent = results["agent"]
         folder_named = (path.parent / "agent.py").is_file()
+        has_run_json = (path.parent / "run.json").is_file()
         info = read_run_info(path.parent, path.parent.name if folder_named else str(agent["name"]))
     except (InvalidResults, RunInfoError) as e:
         raise CompareError(f"{path}: {e}") from None
-    return Entry(suite=name, agent=str(agent["name"]), path=path, privileged=agent.get("privileged") is True,
-                 scores=scores, seeds=run_seeds, date=finished_date(results),
-                 package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""),
-                 algorithm=info.algorithm)
+    if algorithm is not None:
+        grouping = Grouping(path, algorithm, BY_OPTION)
+    else:
+        grouping = Grouping(path, info.algorithm, BY_RUN_JSON if has_run_json else BY_FOLDER if folder_named
+                            else BY_AGENT)
+    entry = Entry(suite=name, agent=str(agent["name"]), path=path, privileged=agent.get("privileged") is True,
+                  scores=scores, seeds=run_seeds, date=finished_date(results),
+                  package_version=str(results["package_version"]), agent_sha256=str(agent.get("sha256") or ""),
+                  algorithm=grouping.algorithm)
+    return entry, grouping
 
 
-def compare(items: Sequence[str], suite: str | None = None) -> Compared:
-    """Load, check and compare the runs; CompareError naming the file on the first run that cannot be compared."""
-    paths = expand(items, suite)
-    if not paths:
+def better_key(x: str, y: str) -> tuple[str, str, str]:
+    """The key of the test "X better than Y"."""
+    return ("better", x, y)
+
+
+def pairwise_tests(comparison: AlgorithmComparison) -> list[Test]:
+    """"X better than Y" for every ordered pair: P(X > Y) > 1/2 (P(Y > X) = 1 - P(X > Y): one estimate, two sides)."""
+    return [Test(better_key(x, y), p, 0.5) for (x, y), p in comparison.improvement.items()]
+
+
+def compare(items: Sequence[str], suite: str | None = None, algorithms: Sequence[str] = (),
+            progress: Callable[[int, int, Path], None] | None = None) -> Compared:
+    """Load, check and compare the runs (`items`, and `algorithms` as NAME=GLOB); CompareError naming the file on
+    the first run that cannot be compared. `progress(done, total, path)` is called as each run is scored."""
+    named = [parse_algorithm(option) for option in algorithms]
+    listed: list[tuple[Path, str | None]] = [(p, name) for name, pattern in named for p in expand([pattern], suite)]
+    listed += [(p, None) for p in expand(items, suite)]
+    if not listed:
         raise CompareError("no runs given")
     seen: dict[str, Path] = {}
-    suites = SuiteCache()
-    entries: list[Entry] = []
-    for path in paths:
+    read: list[tuple[Path, dict[str, Any]]] = []
+    for path, _ in listed:
         key = str(path.resolve())
         digest = hashlib.sha256(path.read_bytes()).hexdigest()
         for earlier in (seen.get(key), seen.get(digest)):
             if earlier is not None:
                 raise CompareError(f"{path}: listed twice (the same run as {earlier}): each run counts once")
         seen[key] = seen[digest] = path
-        entry = load_run(path, suites, suite or (entries[0].suite if entries else None),
-                         entries[0].seeds if entries else None)
+        read.append((path, read_run(path, suite or (read[0][1]["suite"]["name"] if read else None))))
+    seeds = common_seeds(read)
+    suites = SuiteCache()
+    entries, groupings = [], []
+    for i, ((path, results), (_, algorithm)) in enumerate(zip(read, listed)):
+        entry, grouping = load_run(path, results, suites, seeds, algorithm)
         entries.append(entry)
+        groupings.append(grouping)
+        if progress is not None:
+            progress(i + 1, len(read), path)
     the_suite = suites.get(entries[0].suite)
-    return Compared(the_suite, tuple(entries), aggregate(entry_runs(entries), reference_line_cells(the_suite)))
+    comparison = aggregate(entry_runs(entries), reference_line_cells(the_suite))
+    order = list(dict.fromkeys(g.algorithm for g in groupings))
+    comparison = AlgorithmComparison(tuple(sorted(comparison.algorithms, key=lambda a: order.index(a.algorithm))),
+                                     comparison.improvement, comparison.samples, comparison.seed)
+    best_fixed = float(the_suite.summary["score"]["best_fixed"])
+    runs = {run_name(e): with_gap_won(entry_row(e, None, e.path.parent.name), best_fixed) for e in entries}
+    rows = rows_of(best_fixed, comparison, {e.algorithm for e in entries if e.privileged}, runs=runs,
+                   pairs=len(the_suite.pairs))
+    judged = judge_board(list(runs.values()), rows, runs, len(the_suite.pairs), pairwise_tests(comparison))
+    return Compared(the_suite, tuple(entries), comparison, tuple(groupings), judged)
 
 
-def verdict(name_x: str, name_y: str, p: Estimate) -> str:
-    """The algorithm-level verdict of P(X > Y) and its interval."""
+def verdict(name_x: str, name_y: str, p: Estimate, compared: Compared | None = None) -> str:
+    """The algorithm-level verdict of P(X > Y), decided in the comparison's family (alone when none is given)."""
     if p.low is None:
         return "no interval (an algorithm has a single run)"
-    if p.low > 0.5:
+    if compared is not None:
+        x_better, y_better = compared.better(name_x, name_y), compared.better(name_y, name_x)
+    else:
+        x_better, y_better = p.low > 0.5, p.high < 0.5
+    if x_better:
         return f"{name_x} better"
-    if p.high < 0.5:
+    if y_better:
         return f"{name_y} better"
     return "no significant difference"
 
 
-def compare_figure(compared: Compared, path: Path) -> None:
-    """Curves s_1..s_K with run-level bands, and performance profiles with bands; PNG written atomically."""
-    import numpy as np
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+def compared_board(compared: Compared):
+    """The comparison as a leaderboard `Board` (what the board figures are drawn from)."""
+    from mewa_bench.leaderboard.board import Board
 
-    from mewa_bench.leaderboard.plot import line_style
-    from mewa_bench.protocol.aggregate import PROFILE_THRESHOLDS
-    from mewa_bench.reports.figures import save_png
+    return Board(compared.suite, compared.entries, compared.rows, compared.comparison, compared.algorithms,
+                 None if compared.judged is None else compared.judged.family)
 
-    fig = Figure(figsize=(12, 4.8), dpi=100)
-    FigureCanvasAgg(fig)
-    curves, profiles = fig.subplots(1, 2)
-    for i, algo in enumerate(compared.comparison.algorithms):
-        c, style = line_style(i)
-        name = algo.algorithm.replace("$", r"\$")  # a name is text, never mathtext
-        label = f"{name} ({len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''})"
-        for ax, xs, estimates in ((curves, np.arange(1, len(algo.curve) + 1), algo.curve),
-                                  (profiles, np.array(PROFILE_THRESHOLDS), algo.profile)):
-            ax.plot(xs, [e.mean for e in estimates], color=c, ls=style, label=label,
-                    marker="o" if ax is curves else None, ms=3)
-            if estimates[0].low is not None:
-                ax.fill_between(xs, [e.low for e in estimates], [e.high for e in estimates], color=c,
-                                alpha=0.15, lw=0)
-    curves.axhline(float(compared.suite.summary["score"]["best_fixed"]), color="#333333", ls=(0, (6, 2)), lw=1.2,
-                   label="best fixed policy (exact)")
-    curves.set_xlabel("episode k with the same hidden worker")
-    curves.set_ylabel("score s_k (1 = max expected)")
-    curves.set_title("adaptation curves (95% CI over training runs)", fontsize=10)
-    profiles.set_xlabel("threshold tau on a (run, pair) mean score")
-    profiles.set_ylabel("fraction of run x pair cells > tau")
-    profiles.set_title("performance profiles (95% CI over training runs)", fontsize=10)
-    for ax in (curves, profiles):
-        ax.grid(alpha=0.3)
-    curves.legend(fontsize=8)
-    fig.suptitle(f"{compared.suite.name}: algorithms compared", fontsize=11)
-    save_png(fig, path)
+
+def compare_figure(compared: Compared, path: Path) -> tuple[Path, Path]:
+    """The boards' figures of the comparison: curves a panel per algorithm at `path`, gap won beside it
+    (`<stem>-gap-won.png`); PNGs written atomically."""
+    from mewa_bench.leaderboard.plot import plot_curves, plot_gap_won
+
+    board = compared_board(compared)
+    forest = path.with_name(f"{path.stem}-gap-won.png")
+    plot_curves(board, path)
+    plot_gap_won(board, forest)
+    return path, forest
 
 
 def summary(compared: Compared) -> dict[str, Any]:
-    """A JSON-ready record of the comparison (algorithms, probabilities of improvement, bootstrap)."""
-    return {"suite": compared.suite.name, "runs": [str(e.path) for e in compared.entries],
-            "algorithms": [a.to_dict() for a in compared.comparison.algorithms],
-            "improvement": [{"x": x, "y": y, **p.to_dict()} for (x, y), p in compared.comparison.improvement.items()],
+    """A JSON-ready record of the comparison (grouping, algorithms with gap won and verdicts, P(X > Y), bootstrap)."""
+    rows = {r.algorithm: r for r in compared.algorithms}
+    return {"suite": compared.suite.name, "runs": [{"file": str(g.path), "algorithm": g.algorithm, "grouped_by": g.by}
+                                                  for g in compared.groupings],
+            "algorithms": [{**a.to_dict(), "gap_won": rows[a.algorithm].gap_won.to_dict(),
+                            "adapts": rows[a.algorithm].adapts, "beats_best_fixed": rows[a.algorithm].beats_best_fixed,
+                            "adapting_runs": rows[a.algorithm].adapting_runs, "within_run": rows[a.algorithm].within_run}
+                           for a in compared.comparison.algorithms],
+            "improvement": [{"x": x, "y": y, **p.to_dict(), "x_better": compared.better(x, y)}
+                            for (x, y), p in compared.comparison.improvement.items()],
+            "verdicts": None if compared.judged is None else {"tests": compared.judged.family.size,
+                                                              "family_wise_error": compared.judged.family.alpha},
             "bootstrap": compared.comparison.bootstrap()}

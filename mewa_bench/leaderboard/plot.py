@@ -1,21 +1,28 @@
-"""The adaptation-curve figure of a suite's leaderboard (like the paper's Fig. 4): one line per algorithm."""
+"""The figures of a suite's leaderboard: adaptation curves as small multiples, and gap won as a forest plot.
+
+Curves: one panel per algorithm (its mean s_1..s_10 over runs x pairs with its 95% band over training
+runs) against the suite's exact reference lines, the same in every panel; the best fixed policy drawn
+last, in bold black, so that no other line hides it (on narrow-v2 the random task-specific line lies
+on it). Each panel's title gives the algorithm's runs and gap won. Gap won: one line per algorithm,
+its point and 95% interval, with 0 (the best fixed policy) and 100% (max expected) marked.
+"""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
 from mewa_bench.leaderboard.board import Board, reference_rows
 from mewa_bench.protocol.config import EPISODES_PER_PAIR
-from mewa_bench.protocol.scoring import Estimate
 from mewa_bench.reports.figures import save_png
 
-# One (grey, dash pattern) per reference line, so that five lines stay apart in print and on screen.
-_REFERENCE_STYLES = (("#000000", (0, (6, 2))), ("#555555", (0, (1, 1.5))), ("#333333", (0, (6, 2, 1, 2))),
-                     ("#777777", (0, (3, 3))), ("#999999", (0, (6, 2, 1, 2, 1, 2))))
-
-
+# (grey, dash pattern) per reference line but the best fixed policy's (bold black, drawn on top)
+_REFERENCE_STYLES = {"known-worker optimum": ("#777777", (0, (1, 1.5))), "max expected": ("#555555", (0, (6, 2))),
+                     "random task-specific": ("#999999", (0, (3, 3))), "random": ("#aaaaaa", (0, (6, 2, 1, 2)))}
+BEST_FIXED = "best fixed policy"
+COLUMNS = 4
 _LINE_STYLES = ("-", "--", "-.", ":")
 
 
@@ -34,50 +41,118 @@ def line_style(i: int) -> tuple[tuple[float, float, float], str]:
     return palette[i % len(palette)], _LINE_STYLES[(i // len(palette)) % len(_LINE_STYLES)]
 
 
+def _text(name: str) -> str:
+    """A name as matplotlib text, never mathtext."""
+    return name.replace("$", r"\$")
+
+
+def panel_titles(board: Board) -> list[str]:
+    """Each algorithm panel's title: name, runs (privileged), gap won with its interval."""
+    from mewa_bench.leaderboard.algorithm_tables import gap_cell
+
+    titles = []
+    for algo, row in zip(board.comparison.algorithms, board.algorithms):
+        runs = f"{len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''}"
+        within = " within run" if row.within_run else ""
+        titles.append(f"{_text(algo.algorithm)} ({runs}){' (privileged)' if row.privileged else ''}\n"
+                      f"gap won {gap_cell(row.gap_won)}{within}")
+    return titles
+
+
+def _draw_references(ax, board: Board, labelled: bool) -> None:
+    """The suite's exact reference lines, the best fixed policy's bold black on top."""
+    for row in reference_rows(board.suite):
+        if row.name == BEST_FIXED:
+            ax.axhline(row.mean, color="black", lw=2.2, zorder=5, label=f"{row.name} (exact)" if labelled else None)
+        else:
+            grey, dashes = _REFERENCE_STYLES[row.name]
+            ax.axhline(row.mean, color=grey, ls=dashes, lw=1.1, zorder=1,
+                       label=f"{row.name} (exact)" if labelled else None)
+
+
 def curves_figure(board: Board):
-    """s_1..s_K per algorithm with its 95% CI band over training runs, the suite's reference lines dashed."""
+    """Small multiples: a panel per algorithm with its curve and band, the reference lines in each."""
     # Figure + Agg canvas directly: no pyplot, so the caller's global backend and state are untouched.
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(9, 5), dpi=100)
+    algorithms = board.comparison.algorithms if board.comparison is not None else ()
+    n = max(len(algorithms), 1)
+    cols = min(COLUMNS, n)
+    rows = math.ceil(n / cols)
+    fig = Figure(figsize=(3.4 * cols + 0.4, 2.9 * rows + 1.0), dpi=100)
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    lines = _lines(board)
-    for i, (label, curve) in enumerate(lines):
-        x = np.arange(1, len(curve) + 1)
-        color, style = line_style(i)
-        ax.plot(x, [e.mean for e in curve], marker="o", ms=3, color=color, ls=style, label=label)
-        if curve[0].low is not None:
-            ax.fill_between(x, [e.low for e in curve], [e.high for e in curve], color=color, alpha=0.15, lw=0)
-    k = len(lines[0][1]) if lines else EPISODES_PER_PAIR
-    for row, (grey, dashes) in zip(reference_rows(board.suite), _REFERENCE_STYLES):
-        ax.axhline(row.mean, ls=dashes, lw=1.2, color=grey, label=f"{row.name} (exact)")
-    ax.set_xticks(range(1, k + 1))
-    ax.set_xlim(0.7, k + 0.3)
-    ax.set_xlabel("episode k with the same hidden worker")
-    ax.set_ylabel("score s_k (1 = max expected)")
-    what = ("per algorithm (mean, 95% CI over training runs)" if board.comparison is not None
-            else "(mean and 95% CI over pairs x seeds)")
-    ax.set_title(f"{board.suite.name}: adaptation curves {what}", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    axes = fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False).reshape(-1)
+    k = len(algorithms[0].curve) if algorithms else EPISODES_PER_PAIR
+    x = np.arange(1, k + 1)
+    titles = panel_titles(board) if algorithms else [f"{board.suite.name}: no runs yet"]
+    for i, ax in enumerate(axes):
+        if i >= n:
+            ax.set_visible(False)
+            continue
+        _draw_references(ax, board, labelled=i == 0)
+        if algorithms:
+            algo = algorithms[i]
+            color, style = line_style(i)
+            ax.plot(x, [e.mean for e in algo.curve], marker="o", ms=3, color=color, ls=style, lw=1.8, zorder=6)
+            if algo.curve[0].low is not None:
+                ax.fill_between(x, [e.low for e in algo.curve], [e.high for e in algo.curve], color=color, alpha=0.25,
+                                lw=0, zorder=4)
+        ax.set_title(titles[i], fontsize=8.5)
+        ax.grid(alpha=0.3)
+        ax.set_xticks(range(1, k + 1, 1 if k <= 10 else 2))
+        ax.set_xlim(0.7, k + 0.3)
+    for ax in axes[(rows - 1) * cols:]:
+        ax.set_xlabel("episode k (same hidden worker)", fontsize=8)
+    for ax in axes[::cols]:
+        ax.set_ylabel("score s_k", fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    what = "mean; band: 95% CI over training runs, none for one run" if algorithms else "exact reference lines"
+    fig.suptitle(f"{board.suite.name}: adaptation curves per algorithm ({what})", fontsize=11)
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8, frameon=False,
+               bbox_to_anchor=(0.5, 0.0))
+    fig.tight_layout(rect=(0, 0.05, 1, 0.97))
     return fig
 
 
-def _lines(board: Board) -> list[tuple[str, tuple[Estimate, ...]]]:
-    """(legend label, curve) per algorithm, or per entry for a board without algorithms (CIs of checkpoints)."""
-    privileged = {r.algorithm for r in board.algorithms if r.privileged} | {e.agent for e in board.entries
-                                                                           if e.privileged and board.comparison is None}
-    if board.comparison is not None:
-        named = [(a.algorithm, f" ({len(a.runs)} run{'s' if len(a.runs) > 1 else ''})", a.curve)
-                 for a in board.comparison.algorithms]
-    else:
-        named = [(e.agent, "", e.scores.curve) for e in board.entries]
-    return [(name.replace("$", r"\$") + runs + (" (privileged)" if name in privileged else ""), curve)
-            for name, runs, curve in named]  # a name is text, never mathtext
+def gap_won_figure(board: Board):
+    """Forest plot: each algorithm's gap won with its 95% interval, best first; 0 and 100% marked."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rows = board.algorithms
+    fig = Figure(figsize=(8, 1.2 + 0.42 * max(len(rows), 1)), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    for y, row in enumerate(rows):
+        e = row.gap_won
+        color = line_style(y)[0]
+        if e.low is not None:
+            ax.plot([100 * e.low, 100 * e.high], [y, y], color=color, lw=2.2, solid_capstyle="butt")
+        ax.plot([100 * e.mean], [y], marker="o" if not row.within_run else "D", ms=6, color=color,
+                mfc=color if not row.within_run else "white")
+    labels = [f"{_text(r.algorithm)} ({r.runs} run{'s' if r.runs > 1 else ''}{', within run' if r.within_run else ''})"
+              for r in rows]
+    ax.set_yticks(range(len(rows)), labels, fontsize=8)
+    ax.set_ylim(len(rows) - 0.5, -0.5) if rows else ax.set_ylim(-0.5, 0.5)
+    # labels on either side of their line, so that they never overlap however wide the axis is
+    for value, label, side in ((0.0, "0 = best fixed policy", "right"), (100.0, "100% = max expected", "left")):
+        ax.axvline(value, color="black", lw=1.2 if value == 0 else 0.8, ls="-" if value == 0 else (0, (4, 2)))
+        ax.annotate(label, (value, 1.0), xycoords=("data", "axes fraction"), xytext=(-3 if side == "right" else 3, 2),
+                    textcoords="offset points", fontsize=8, va="bottom", ha=side)
+    ax.set_xlabel("gap won, % of (1 - best fixed): what only adaptation can win (95% CI)")
+    ax.grid(axis="x", alpha=0.3)
+    ax.set_title(f"{board.suite.name}: gap won per algorithm (non-adaptive gap "
+                 f"{float(board.suite.summary['non_adaptive_gap']):.4f})", fontsize=10, pad=16)
+    fig.tight_layout()
+    return fig
 
 
 def plot_curves(board: Board, path: Path) -> None:
-    """The board's curve figure, written atomically as PNG."""
+    """The board's curves figure, written atomically as PNG."""
     save_png(curves_figure(board), path)
+
+
+def plot_gap_won(board: Board, path: Path) -> None:
+    """The board's gap-won forest plot, written atomically as PNG."""
+    save_png(gap_won_figure(board), path)

@@ -63,11 +63,6 @@ class AlgorithmScores:
     profile: tuple[Estimate, ...]  # at PROFILE_THRESHOLDS
     note: str
 
-    def verdicts(self, best_fixed: float) -> dict[str, bool]:
-        """"adapts": adaptability CI above 0; "beats_best_fixed": mean CI above the best fixed policy's score."""
-        return {"adapts": self.adaptability.above_zero,
-                "beats_best_fixed": self.mean.low is not None and self.mean.low > best_fixed}
-
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form (without the profile, which is for figures)."""
         return {"algorithm": self.algorithm, "runs": list(self.runs), "mean": self.mean.to_dict(),

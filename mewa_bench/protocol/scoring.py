@@ -31,6 +31,9 @@ These CIs are conditional on the evaluated checkpoint; training-run variance is 
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any, Sequence
@@ -71,6 +74,10 @@ class Estimate:
     mean: float
     low: float | None
     high: float | None
+    # the interval's standard error and Student t degrees of freedom (what a test of the same estimate uses; unset
+    # for an estimate read back from JSON, whose interval gives them: `protocol.verdicts.standard_error`)
+    se: float | None = field(default=None, compare=False, repr=False)
+    df: int | None = field(default=None, compare=False, repr=False)
 
     def to_dict(self) -> dict[str, float | None]:
         """JSON-ready form."""
@@ -126,9 +133,25 @@ class Scores:
                 "adaptability": self.adaptability.to_dict(), "skill": self.skill.to_dict(),
                 "verdicts": self.verdicts, "comparisons": {k: c.to_dict() for k, c in self.comparisons.items()},
                 "raw": self.raw, "control_variates": self.control_variates, "units": self.units,
+                **({"pair_means": [float(v) for v in self.pair_curves.mean(axis=1)]} if self.pair_curves.size else {}),
                 "bootstrap": {"seed": BOOTSTRAP_SEED, "samples": BOOTSTRAP_SAMPLES, "confidence": CONFIDENCE,
                               "unit": "(pair, seed)", "strata": "pair", "interval": INTERVAL_METHOD},
                 **({"warning": self.warning} if self.warning else {})}
+
+
+def gap_won(estimate: Estimate, best_fixed: float, difference: bool = False) -> Estimate:
+    """(score - best fixed) / (1 - best fixed): the share of the non-adaptive gap won, with its interval (the same
+    map; best fixed is exact). `difference`: the estimate is already score - best fixed (a paired comparison)."""
+    gap = 1.0 - best_fixed
+    if gap <= 0.0:
+        raise ValueError(f"the best fixed policy scores {best_fixed}: no gap for adaptation to win")
+    shift = 0.0 if difference else best_fixed
+
+    def won(v: float | None) -> float | None:
+        return None if v is None else (v - shift) / gap
+
+    return Estimate(won(estimate.mean), won(estimate.low), won(estimate.high),
+                    None if estimate.se is None else estimate.se / gap, estimate.df)
 
 
 # -- reference replays -----------------------------------------------------------------------------
@@ -159,15 +182,41 @@ def reference_scores(suite: Suite, units: Sequence[dict[str, Any]]) -> Reference
         by_pair.setdefault(int(unit["pair"]), []).append(u)
     for pair, rows in by_pair.items():
         p = suite.pairs[pair]
-        task, refs = suite.tasks[p.task_index], names[p.task_index]
+        refs = names[p.task_index]
         keys = np.array([units[u]["env_seeds"] for u in rows], dtype=np.uint64).reshape(-1)
-        returns = replay_returns(task, refs, p.worker.w, keys)
-        scores = episode_score(normalised_return(task, returns), p.max_expected)
-        realised[rows, :, : len(refs)] = scores.reshape(len(rows), k, len(refs))
+        realised[rows, :, : len(refs)] = replayed_scores(suite, pair, keys).reshape(len(rows), k, len(refs))
         exact = [*p.data["toptimal"], p.data["baselines"][RANDOM_TASK_SPECIFIC.replace("-", "_")],
                  p.data["baselines"][RANDOM]]
         expected[rows, : len(refs)] = episode_score(np.array(exact), p.max_expected)
     return References(realised, expected, names)
+
+
+_REPLAYS: OrderedDict[tuple[str, int, bytes], np.ndarray] = OrderedDict()
+REPLAYS_KEPT = 256  # (suite, pair, keys) replays kept: every pair of the shipped suites, several times over
+_REPLAYS_LOCK = threading.Lock()
+
+
+def replayed_scores(suite: Suite, pair: int, keys: np.ndarray) -> np.ndarray:
+    """Scores [episodes, references] of the pair's reference policies replayed on the luck keys (read-only).
+
+    A replay is a pure function of (suite, pair, keys), and every ranked run of a suite plays the same keys, so a
+    board of many runs replays each pair once: kept by the suite's hash, the pair and a digest of the keys."""
+    keys = np.ascontiguousarray(keys, dtype=np.uint64)
+    key = (suite.sha256, int(pair), hashlib.sha256(keys.tobytes()).digest())
+    with _REPLAYS_LOCK:
+        if key in _REPLAYS:
+            _REPLAYS.move_to_end(key)
+            return _REPLAYS[key]
+    p = suite.pairs[pair]
+    task = suite.tasks[p.task_index]
+    returns = replay_returns(task, policy_names(task.N), p.worker.w, keys)
+    scores = episode_score(normalised_return(task, returns), p.max_expected)
+    scores.flags.writeable = False
+    with _REPLAYS_LOCK:
+        _REPLAYS[key] = scores
+        while len(_REPLAYS) > REPLAYS_KEPT:
+            _REPLAYS.popitem(last=False)
+    return scores
 
 
 # -- control variates ------------------------------------------------------------------------------
@@ -250,12 +299,23 @@ def _leave_one_out_variance(c: np.ndarray, pooled: bool = False) -> np.ndarray:
 
 def stratified_resamples(strata: np.ndarray, samples: int = BOOTSTRAP_SAMPLES,
                          seed: int = BOOTSTRAP_SEED) -> np.ndarray:
-    """Unit indices [samples, U]: each pair's units resampled with replacement among themselves."""
+    """Unit indices [samples, U]: each pair's units resampled with replacement among themselves (read-only).
+
+    The same for every run with the same units per pair (a board's runs): the latest few are kept."""
+    strata = np.ascontiguousarray(strata, dtype=np.int64)
+    return _stratified_resamples(strata.tobytes(), samples, seed)
+
+
+@lru_cache(maxsize=2)  # a [2000, 4096] index array is 65 MB: the latest two only
+def _stratified_resamples(strata_bytes: bytes, samples: int, seed: int) -> np.ndarray:
+    """stratified_resamples, computed."""
+    strata = np.frombuffer(strata_bytes, dtype=np.int64)
     rng = np.random.default_rng(seed)
     idx = np.empty((samples, len(strata)), dtype=np.int64)
     for stratum in np.unique(strata):
         rows = np.flatnonzero(strata == stratum)
         idx[:, rows] = rows[rng.integers(0, len(rows), size=(samples, len(rows)))]
+    idx.flags.writeable = False
     return idx
 
 
@@ -287,8 +347,9 @@ def bootstrap_interval(point: float, replicates: np.ndarray, n: int, df: int,
     per stratum; None bounds when n < 2 (no variance can be estimated), clipped to `bounds`."""
     if n < 2 or df < 1:
         return Estimate(float(point), None, None)
-    half = _t_quantile(df) * np.sqrt(n / (n - 1.0)) * float(np.std(replicates, ddof=1))
-    return Estimate(float(point), float(max(point - half, bounds[0])), float(min(point + half, bounds[1])))
+    se = float(np.sqrt(n / (n - 1.0)) * np.std(replicates, ddof=1))
+    half = _t_quantile(df) * se
+    return Estimate(float(point), float(max(point - half, bounds[0])), float(min(point + half, bounds[1])), se, int(df))
 
 
 # -- the run's scores ------------------------------------------------------------------------------

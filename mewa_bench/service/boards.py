@@ -6,9 +6,10 @@ each with its `source`: server-evaluated (the server ran the agent file in its s
 self-reported (a results file the submitter ran: re-scored from its episodes, but played where the
 server could not see; unranked unless the server's `rank_uploads` is set) or reference,
 with the suite's exact reference lines and each agent's adaptation curve s_1..s_10 with its CIs.
-Above the rows of a public board, the algorithms table (`algorithm_table`): the runs a submitter
+Above the rows of a public board, the algorithms table (`grouped_runs`): the runs a submitter
 sent under one algorithm name, with statistics over training runs as the static boards have them;
-the board's figure draws the same algorithms (`board_algorithms`, `service.web.curves`).
+the board's figure draws the same algorithms (`board_algorithms`, `service.web.curves`). Verdicts and gap won
+are the static boards' (`leaderboard.judging`): one family over every row the board shows.
 A hidden board shows scores only: never the hidden suite, its pairs, its size or the runs' units.
 Its reference lines (the fixed policies' and the optimum's means over the whole suite) are shown:
 one number each, which the agents' rows are read against, and from which no pair can be learned.
@@ -29,6 +30,8 @@ import numpy as np
 from mewa_bench.design.suites import ALL_SUITES, Suite, load_suite
 from mewa_bench.leaderboard.algorithms import AlgorithmRow
 from mewa_bench.leaderboard.board import AGENT, PRIVILEGED, REFERENCE, Row, competition_ranks, reference_rows
+from mewa_bench.leaderboard.judging import family_caption, judge_board, with_gap_won
+from mewa_bench.protocol.verdicts import PROCEDURE
 from mewa_bench.protocol.aggregate import AlgorithmComparison
 from mewa_bench.protocol.config import EPISODES_PER_PAIR
 from mewa_bench.service.models import REFERENCE_SOURCE, SELF_REPORTED
@@ -66,9 +69,9 @@ def _public_suite(name: str) -> Suite:
 
 
 @lru_cache(maxsize=None)
-def best_fixed_note(name: str) -> str | None:
-    """A public board's note on what P(> best fixed) can say there (`algorithm_tables.best_fixed_note`), once."""
-    from mewa_bench.leaderboard.algorithm_tables import best_fixed_note as note_of
+def gap_note(name: str) -> str | None:
+    """A public board's note on what gap won means on a suite with a small non-adaptive gap, once."""
+    from mewa_bench.leaderboard.algorithm_tables import gap_note as note_of
 
     return note_of(_public_suite(name))
 
@@ -102,36 +105,57 @@ def board(session: Session, settings: Settings, name: str) -> dict[str, Any] | N
                             .order_by(BoardEntry.mean.desc(), BoardEntry.agent_name, BoardEntry.id)).all()
     entries = [e for e, _ in found]
     submitters = {e.id: token_id for e, token_id in found}
-    rows: list[dict[str, Any]] = []
-
     def ranked(e: BoardEntry) -> bool:
         """Privileged runs never rank; self-reported ones only where the server says so."""
         return not e.privileged and (e.source != SELF_REPORTED or settings.rank_uploads)
 
     ranks = iter(competition_ranks([e.mean for e in entries if ranked(e)]))
+    checkpoints: dict[str, Row] = {}  # run name (as the algorithms table's runs are named) -> row
+    extras: dict[int, dict[str, Any]] = {}
     for e in entries:
         row = Row(**json.loads(e.row))
         row = dataclasses.replace(row, rank=next(ranks) if ranked(e) else None,
                                   file=f"/api/submissions/{e.submission_id}")
+        if suite is not None:
+            row = with_gap_won(row, float(suite.summary["score"]["best_fixed"]))
+        checkpoints[run_label(e)] = row
         scores = json.loads(e.scores)
-        rows.append({**dataclasses.asdict(row), "source": e.source, "submission_id": e.submission_id,
-                     "curve": [p["mean"] for p in scores["curve"]], "curve_low": [p["low"] for p in scores["curve"]],
-                     "curve_high": [p["high"] for p in scores["curve"]]})
+        extras[id(row)] = {"source": e.source, "submission_id": e.submission_id,
+                           "curve": [p["mean"] for p in scores["curve"]], "curve_low": [p["low"] for p in scores["curve"]],
+                           "curve_high": [p["high"] for p in scores["curve"]]}
+    # What only a public board shows. A hidden board has no algorithms table (its fractions of (run, pair) cells would
+    # tell the hidden suite's number of pairs) and no suite name or hash. (Its figure draws the algorithms all the
+    # same: curves and run-level bands are means over pairs, no fractions.)
+    public = None if hidden else suite
+    grouped = None if public is None else grouped_runs(public, entries, submitters, settings.rank_uploads)
+    algorithm_rows = () if grouped is None else grouped.rows
+    family = None
+    shown = list(checkpoints.values())
+    if suite is not None:
+        judged = judge_board(shown, algorithm_rows, checkpoints, pairs=len(suite.pairs))
+        shown, algorithm_rows, family = list(judged.rows), judged.algorithms, judged.family
+    rows: list[dict[str, Any]] = [{**dataclasses.asdict(row), **extras[id(before)]}
+                                  for row, before in zip(shown, checkpoints.values())]
     references = reference_rows(suite) if suite is not None else []
     for r in references:
         rows.append({**dataclasses.asdict(r), "source": REFERENCE_SOURCE, "submission_id": None, "curve": [r.mean] * EPISODES_PER_PAIR,
                      "curve_low": None, "curve_high": None})  # fixed policies: a flat curve
     rows.sort(key=lambda r: (-r["mean"], KIND_ORDER[r["kind"]], r["name"]))
-    # What only a public board shows. A hidden board has no algorithms table (its fractions of (run, pair) cells would
-    # tell the hidden suite's number of pairs), no P(> best fixed) note (a count of pairs) and no suite name or hash.
-    # (Its figure draws the algorithms all the same: curves and run-level bands are means over pairs, no fractions.)
-    public = None if hidden else suite
-    algorithms = [] if public is None else algorithm_table(public, entries, submitters, settings.rank_uploads)
-    note = None if public is None else best_fixed_note(name)
+    algorithms = [] if grouped is None else grouped.table(algorithm_rows)
+    several = sum(not a.within_run and a.mean.low is not None for a in algorithm_rows)
     return {"board": name, "hidden": hidden, "public_twin": hidden_twin(name) if hidden else None,
             "suite": None if public is None else {"name": public.name, "sha256": public.sha256},
             "seeds": len(settings.seeds_for(name)), "entries": len(entries), "uploads_ranked": settings.rank_uploads,
-            "algorithms": algorithms, "best_fixed_note": note, "rows": rows}
+            "algorithms": algorithms, "gap_note": None if public is None else gap_note(name),
+            "verdicts": None if family is None else {
+                "procedure": PROCEDURE, "family_wise_error": family.alpha, "tests": family.size,
+                "caption": family_caption(family, len(shown), several)},
+            "rows": rows}
+
+
+def run_label(entry: Any) -> str:
+    """A board entry's run name in the board's algorithms table (unique: the entry's id)."""
+    return f"{entry.agent_name} #{entry.id}"
 
 
 @dataclass(frozen=True)
@@ -143,9 +167,10 @@ class BoardAlgorithms:
     rows: tuple[AlgorithmRow, ...]
     sources: dict[str, str]
 
-    def table(self) -> list[dict[str, Any]]:
-        """The algorithms table as JSON rows."""
-        return [{**dataclasses.asdict(row), "source": self.sources[row.algorithm]} for row in self.rows]
+    def table(self, rows: Iterable[AlgorithmRow] | None = None) -> list[dict[str, Any]]:
+        """The algorithms table as JSON rows (`rows`: these rows, judged, instead of the grouping's)."""
+        return [{**dataclasses.asdict(row), "source": self.sources[row.algorithm]}
+                for row in (self.rows if rows is None else rows)]
 
 
 _GROUPED: dict[tuple, BoardAlgorithms | None] = {}  # board entries never change once written: groups by their ids
@@ -163,13 +188,6 @@ def _cached(key: tuple) -> Any:
     """A board's cached groups (None: it has no run), or _NOT_CACHED."""
     with _GROUPED_LOCK:
         return _GROUPED.get(key, _NOT_CACHED)
-
-
-def algorithm_table(suite: Suite, entries: list[Any], submitters: dict[int, int],
-                    rank_uploads: bool) -> list[dict[str, Any]]:
-    """The algorithms table: a board's runs grouped by (submitter, algorithm name), statistics over the runs."""
-    grouped = grouped_runs(suite, entries, submitters, rank_uploads)
-    return [] if grouped is None else grouped.table()
 
 
 def grouped_runs(suite: Suite, entries: list[Any], submitters: dict[int, int],
@@ -196,7 +214,7 @@ def grouped_runs(suite: Suite, entries: list[Any], submitters: dict[int, int],
 def board_algorithms(session: Session, settings: Settings, name: str, suite: Suite) -> BoardAlgorithms | None:
     """`grouped_runs` of a board, read from the database: its entries' ids first (the cache's key; the board's
     page has usually grouped them just before), then, only if they are not cached, the columns the grouping reads
-    (never the stored scores or rows)."""
+    (the stored rows, small, for one-run algorithms' within-run intervals; never the stored scores)."""
     from sqlalchemy import select
 
     from mewa_bench.service.models import BoardEntry, Submission
@@ -206,7 +224,7 @@ def board_algorithms(session: Session, settings: Settings, name: str, suite: Sui
     if cached is not _NOT_CACHED:
         return cached
     found = session.execute(select(BoardEntry.id, BoardEntry.agent_name, BoardEntry.algorithm, BoardEntry.source,
-                                   BoardEntry.privileged, BoardEntry.pair_curves, Submission.token_id)
+                                   BoardEntry.privileged, BoardEntry.pair_curves, BoardEntry.row, Submission.token_id)
                             .join(Submission, Submission.id == BoardEntry.submission_id)
                             .where(BoardEntry.board == name)).all()
     return grouped_runs(suite, found, {e.id: e.token_id for e in found}, settings.rank_uploads)
@@ -235,11 +253,14 @@ def _group(suite: Suite, entries: list[Any], submitters: dict[int, int],
         if e.privileged:
             privileged.add(name)
         sources[name] = e.source
-        runs.append(Run(name=f"{e.agent_name} #{e.id}", algorithm=name, curves=np.array(json.loads(e.pair_curves))))
+        runs.append(Run(name=run_label(e), algorithm=name, curves=np.array(json.loads(e.pair_curves))))
     if not runs:
         return None
     comparison = aggregate(runs, reference_line_cells(suite), pairwise=False)
-    return BoardAlgorithms(comparison, rows_of(suite, comparison, privileged, frozenset(unranked)), sources)
+    best_fixed = float(suite.summary["score"]["best_fixed"])
+    checkpoints = {run_label(e): with_gap_won(Row(**json.loads(e.row)), best_fixed) for e in kept}
+    return BoardAlgorithms(comparison, rows_of(best_fixed, comparison, privileged, frozenset(unranked), checkpoints,
+                                               len(suite.pairs)), sources)
 
 
 def boards_index(session: Session, settings: Settings) -> list[dict[str, Any]]:

@@ -19,8 +19,8 @@ from mewa_bench.protocol.scoring import Estimate
 from mewa_bench.service.web.layout import esc, page
 
 _ROW_FIELDS = tuple(f.name for f in dataclasses.fields(Row))
-_NUMERIC = frozenset({"rank", "mean score [95% CI]", "IQM", "s_1", "s_10", "adaptability [95% CI]",
-                      "vs best fixed [95% CI]", "skill", "seeds"})
+_NUMERIC = frozenset({"rank", "gap won [95% CI]", "mean score [95% CI]", "IQM", "s_1", "s_10",
+                      "adaptability [95% CI]", "skill", "seeds"})
 AGENT_COLUMN = HEADER.index("agent")
 SHA_COLUMN = HEADER.index("agent sha256")
 SHA_SHOWN = 12  # hex digits of the agent's sha256 in the table (all of it on hover and in the JSON)
@@ -62,8 +62,9 @@ def table_row(content: dict[str, Any]) -> str:
 def algorithm_row(content: dict[str, Any]) -> AlgorithmRow:
     """The algorithms-table row inside the JSON API's `algorithms`."""
     fields = {f.name: content[f.name] for f in dataclasses.fields(AlgorithmRow)}
-    for name in ("iqm", "mean", "adaptability", "over_best_fixed"):
+    for name in ("gap_won", "iqm", "mean", "adaptability"):
         fields[name] = Estimate(**fields[name])
+    fields["run_names"] = tuple(fields["run_names"])
     return AlgorithmRow(**fields)
 
 
@@ -86,10 +87,15 @@ def algorithms_html(board: dict[str, Any]) -> str:
         kind = "privileged" if row.privileged else "agent"
         rows.append(f'<tr class="{kind}" data-algorithm="{esc(row.algorithm)}" data-runs="{row.runs}">'
                     + "".join(tds) + "</tr>")
-    note = board.get("best_fixed_note")
     return (f'<h2>Algorithms</h2><table id="algorithms"><thead><tr>{head}</tr></thead><tbody>\n'
-            + "\n".join(rows) + f'\n</tbody></table><p class="muted">{esc(algorithm_tables.EXPLANATION)}</p>'
-            + (f'<p class="muted" id="best-fixed-note">{esc(note)}</p>' if note else ""))
+            + "\n".join(rows) + f'\n</tbody></table><p class="muted">{esc(algorithm_tables.EXPLANATION)}</p>')
+
+
+def captions_html(board: dict[str, Any]) -> str:
+    """What decides the board's verdicts, and what gap won means on its suite when its gap is small."""
+    verdicts, note = board.get("verdicts"), board.get("gap_note")
+    return ((f'<p class="muted" id="verdicts">{esc(verdicts["caption"])}</p>' if verdicts else "")
+            + (f'<p class="muted" id="gap-note">{esc(note)}</p>' if note else ""))
 
 
 def _facts(board: dict[str, Any]) -> str:
@@ -123,10 +129,11 @@ def _figure(board: dict[str, Any], figure_version: str | None, plotted: int, dra
     shown = (f"the {plotted} best of {counted(algorithms, 'algorithm')}" if algorithms > plotted
              else counted(algorithms, "algorithm"))
     caption = ("Adaptation curves: no run to draw yet, only the suite's exact reference lines (dashed)." if not runs
-               else f"Adaptation curves: mean score s_k of episode k with the same hidden worker, per algorithm "
-                    f"({shown}, from {counted(runs, 'run')}: a submitter's runs under one algorithm name; bands: 95% "
-                    f"CI over training runs, none for a one-run algorithm), and the suite's exact reference lines "
-                    f"(dashed).")
+               else f"Adaptation curves, one panel per algorithm ({shown}, from {counted(runs, 'run')}: a "
+                    f"submitter's runs under one algorithm name): mean score s_k of episode k with the same hidden "
+                    f"worker, band: 95% CI over training runs (none for a one-run algorithm), gap won in each "
+                    f"panel's title; in every panel the suite's exact reference lines, the best fixed policy in "
+                    f"bold black.")
     return (f'<figure><img id="curves" src="/leaderboards/{name}/curves.png?v={esc(figure_version)}" '
             f'alt="Adaptation curves on {name}: score s_k per episode k for each algorithm, with the reference lines" '
             f'width="900"><figcaption>{esc(caption)}</figcaption></figure>')
@@ -144,7 +151,7 @@ def board_html(board: dict[str, Any], figure_version: str | None, plotted: int,
     algorithms = algorithms_html(board)
     checkpoints = f'<h2>Checkpoints</h2><p class="muted">{esc(CHECKPOINTS)}</p>' if algorithms else ""
     body = (f'<div id="board" data-board="{esc(board["board"])}" data-kind="{kind}">{_facts(board)}'
-            f"{algorithms}{_figure(board, figure_version, plotted, drawn)}\n{checkpoints}"
+            f"{captions_html(board)}{algorithms}{_figure(board, figure_version, plotted, drawn)}\n{checkpoints}"
             f'<table id="ranking"><thead><tr>{head}</tr></thead><tbody>\n{rows}\n</tbody></table>\n'
             f'<p class="muted">Sources: {"; ".join(esc(t) for t in SOURCES.values())}. Self-reported rows are '
             f"{'ranked' if board.get('uploads_ranked') else 'unranked'} on this server.</p>"
