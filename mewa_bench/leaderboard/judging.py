@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Hashable, Mapping, Sequence
 
 from mewa_bench.leaderboard.board import Row
 from mewa_bench.protocol.scoring import Estimate, gap_won
-from mewa_bench.protocol.verdicts import FAMILY_ALPHA, PROCEDURE, Family, Test, judge, read_back
+from mewa_bench.protocol.verdicts import FAMILY_ALPHA, PROCEDURE, Family, Hypothesis, judge, read_back
 
 if TYPE_CHECKING:
     from mewa_bench.leaderboard.algorithms import AlgorithmRow
@@ -64,21 +64,21 @@ def algorithm_key(name: str, verdict: str) -> tuple[str, str, str]:
     return ("algorithm", name, verdict)
 
 
-def board_tests(runs: Mapping[str, Row], algorithms: Sequence[AlgorithmRow], pairs: int) -> list[Test]:
+def board_tests(runs: Mapping[str, Row], algorithms: Sequence[AlgorithmRow], pairs: int) -> list[Hypothesis]:
     """Every test of the checkpoints `runs` (run name -> row) and of the algorithms."""
     tests = []
     for name, row in runs.items():
         estimates = checkpoint_estimates(row, pairs)
-        tests += [Test(run_key(name, ADAPTS), estimates["adaptability"], 0.0),
-                  Test(run_key(name, BEATS), estimates["gap_won"], 0.0)]
+        tests += [Hypothesis(run_key(name, ADAPTS), estimates["adaptability"], 0.0),
+                  Hypothesis(run_key(name, BEATS), estimates["gap_won"], 0.0)]
     for a in algorithms:
         key = (lambda v: run_key(a.run_names[0], v)) if a.within_run else (lambda v: algorithm_key(a.algorithm, v))
-        tests += [Test(key(ADAPTS), a.adaptability, 0.0), Test(key(BEATS), a.gap_won, 0.0)]
+        tests += [Hypothesis(key(ADAPTS), a.adaptability, 0.0), Hypothesis(key(BEATS), a.gap_won, 0.0)]
     return tests
 
 
 def judge_board(rows: Sequence[Row], algorithms: Sequence[AlgorithmRow], runs: Mapping[str, Row], pairs: int,
-                extra: Sequence[Test] = ()) -> Judged:
+                extra: Sequence[Hypothesis] = ()) -> Judged:
     """Holm over the board's tests (and `extra` ones); the rows and algorithm rows with their verdicts. `runs` maps
     each checkpoint's run name to its row (the same objects as in `rows`)."""
     family = judge([*board_tests(runs, algorithms, pairs), *extra])

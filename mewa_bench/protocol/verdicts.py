@@ -26,7 +26,7 @@ PROCEDURE = "Holm's step-down"
 
 
 @dataclass(frozen=True)
-class Test:
+class Hypothesis:
     """One one-sided test: is `estimate` above `threshold`? `key` names it (tests with one key are one test)."""
 
     key: Hashable
@@ -90,7 +90,7 @@ class Family:
         return self.decisions.get(key)
 
 
-def judge(tests: Iterable[Test], alpha: float = FAMILY_ALPHA) -> Family:
+def judge(tests: Iterable[Hypothesis], alpha: float = FAMILY_ALPHA) -> Family:
     """Holm over every test with an interval (the others get no verdict). Two tests with one key must be the same
     test (a one-run algorithm's and its checkpoint's): it counts once."""
     p_values: dict[Hashable, float] = {}
