@@ -95,9 +95,12 @@ def test_runs_of_another_suite_partial_runs_and_other_seeds_are_refused(runs: Pa
         compare([str(runs / "good-narrow-v1-seed0"), str(partial)])
     assert str(partial) in str(e.value)
     seeds = run_folder(tmp_path, "seeds", 1, load_suite("narrow-v1"), 0.9, seeds=[0, 1])
-    with pytest.raises(CompareError, match="seeds") as e:
-        compare([str(runs / "good-narrow-v1-seed0"), str(seeds)])
-    assert str(seeds) in str(e.value)
+    for order in ([str(runs / "good-*"), str(seeds)], [str(seeds), str(runs / "good-*")]):  # whatever the order
+        with pytest.raises(CompareError, match="seeds") as e:
+            compare(order)
+        assert str(e.value).startswith(str(seeds / "results-narrow-v1.json"))
+        assert "evaluated with 2 seeds (0..1), the other runs with 3 seeds (0..2)" in str(e.value)
+        assert "re-evaluate it with --seeds 3" in str(e.value)
 
 
 def test_the_compare_command_prints_verdicts_and_writes_the_png(runs: Path, tmp_path: Path) -> None:
@@ -109,8 +112,12 @@ def test_the_compare_command_prints_verdicts_and_writes_the_png(runs: Path, tmp_
     result = CliRunner().invoke(app, ["compare", str(runs / "good-*"), str(runs / "weak-*"), "--out", str(png)],
                                 env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
-    assert "good vs weak on narrow-v1: probability of improvement 1.0000" in result.output
+    assert "good vs weak: P(X > Y) 1.0000" in result.output
     assert "good better" in result.output and png.stat().st_size > 0
+    assert (tmp_path / "cmp-gap-won.png").stat().st_size > 0
+    for term in ("gap won:", "IQM:", "P(X > Y): probability of improvement", "verdicts: one-sided tests"):
+        assert term in result.output  # a line defining each statistic
+    assert f"good <- {runs / 'good-narrow-v1-seed0' / 'results-narrow-v1.json'} (by run.json)" in result.output
     twice = CliRunner().invoke(app, ["compare", str(runs / "good-*"), str(runs / "good-narrow-v1-seed1")])
     assert twice.exit_code == 1 and "listed twice" in twice.output
 
@@ -125,3 +132,54 @@ def test_a_run_of_another_protocol_is_refused_naming_the_file(runs: Path, tmp_pa
     with pytest.raises(CompareError, match="protocol") as e:
         compare([str(runs / "good-narrow-v1-seed1"), str(old)])
     assert str(path) in str(e.value)
+
+
+def test_a_seed_mismatch_with_the_protocols_seeds_says_omit_seeds() -> None:
+    from mewa_bench.leaderboard.compare import common_seeds
+    from mewa_bench.protocol.config import default_seeds
+
+    default = list(default_seeds("narrow-v1"))
+    runs = [(Path(f"run{i}.json"), {"suite": {"name": "narrow-v1"}, "seeds": seeds})
+            for i, seeds in enumerate([[0, 1, 2], default, default])]
+    for order in (runs, runs[::-1]):
+        with pytest.raises(CompareError) as e:
+            common_seeds(order)
+        message = str(e.value)
+        assert message.startswith("run0.json: evaluated with 3 seeds (0..2), the other runs with 256 seeds (0..255)")
+        assert "(omit --seeds)" in message and "0,1,2,3" not in message
+
+
+def loose_file(folder: Path, name: str, level: float, seed: int) -> Path:
+    """A results file alone in a folder (no run.json, no agent.py): grouped by the agent name inside it."""
+    folder.mkdir(parents=True)
+    path = folder / "results-narrow-v1.json"
+    write_results(path, results(load_suite("narrow-v1"), name, level, np.random.default_rng(seed)))
+    return path
+
+
+def test_algorithm_options_name_the_runs_as_asked_and_say_how_each_was_grouped(runs: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+    from mewa_bench.leaderboard.compare import BY_AGENT, BY_OPTION, BY_RUN_JSON
+
+    long = "my_agent_with_a_rather_long_descriptive_name_that_a_narrow_terminal_would_cut"
+    for seed in range(3):  # three training runs of one agent file: the same agent name in every results file
+        loose_file(tmp_path / "mine" / f"seed{seed}", long, 0.85 + 0.01 * seed, seed)
+    loose_file(tmp_path / "other" / "a", long, 0.6, 7)  # another algorithm's run, under the same agent name
+    alone = compare([str(tmp_path / "mine" / "*"), str(tmp_path / "other" / "a")])
+    assert [(len(a.runs), a.algorithm) for a in alone.comparison.algorithms] == [(4, long)]  # grouped by name...
+    assert {g.by for g in alone.groupings} == {BY_AGENT}  # ...and it says so
+    asked = compare([str(runs / "good-*")], algorithms=[f"{long}-tuned=" + str(tmp_path / "mine" / "*"),
+                                                        f"{long}-other=" + str(tmp_path / "other" / "a")])
+    assert [(a.algorithm, len(a.runs)) for a in asked.comparison.algorithms] == [
+        (f"{long}-tuned", 3), (f"{long}-other", 1), ("good", 3)]  # in the order given: --algorithm ones first
+    assert [g.by for g in asked.groupings] == [BY_OPTION] * 4 + [BY_RUN_JSON] * 3
+    result = CliRunner().invoke(app, ["compare", str(runs / "good-*"), "--algorithm", f"{long}-tuned={tmp_path}/mine/*",
+                                      "--algorithm", f"{long}-other={tmp_path}/other/a",
+                                      "--out", str(tmp_path / "c.png")], env={"COLUMNS": "80"})
+    assert result.exit_code == 0, result.output
+    assert "…" not in result.output  # no name is cut: two long names never print as one label
+    assert f"{long}-tuned <- {tmp_path}/mine/seed0/results-narrow-v1.json (by --algorithm)" in result.output
+    with pytest.raises(CompareError, match="expected NAME=GLOB"):
+        compare([], algorithms=["no-pattern"])

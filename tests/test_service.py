@@ -539,11 +539,17 @@ def test_a_submitters_runs_of_one_algorithm_share_a_row_of_the_algorithms_table(
     expected = sum(runs(label)["scores"]["mean"]["mean"] for label in ("mine-1", "mine-2", "mine-3")) / 3
     assert abs(ours["mean"]["mean"] - expected) < 1e-9
     assert ours["mean"]["low"] < ours["mean"]["mean"] < ours["mean"]["high"]
-    assert other["mean"]["low"] is None and "no interval over training runs" in other["note"]
-    from mewa_bench.leaderboard.algorithm_tables import best_fixed_note
+    # a one-run algorithm shows its checkpoint's within-run intervals and verdicts, and says so
+    assert other["within_run"] and other["mean"]["low"] is not None and "conditional on this checkpoint" in other["note"]
+    assert ours["gap_won"]["low"] < ours["gap_won"]["mean"] < ours["gap_won"]["high"] and not ours["within_run"]
+    assert ours["adapting_runs"] in (0, 1, 2, 3)
+    from mewa_bench.leaderboard.algorithm_tables import gap_note
 
-    assert board["best_fixed_note"] is None  # narrow-v1's best fixed policy scores between 0 and 1
-    assert get(server, "/api/leaderboards/narrow-v2").json()["best_fixed_note"] == best_fixed_note(load_suite("narrow-v2"))
+    assert board["gap_note"] == gap_note(load_suite("narrow-v1")) and "0.0190" in board["gap_note"]
+    assert get(server, "/api/leaderboards/narrow-v2").json()["gap_note"] is None  # a gap of 0.44: nothing to warn of
+    agents = [r for r in board["rows"] if r["kind"] != "reference"]
+    assert board["verdicts"]["tests"] >= 2 * len(agents) and "Holm" in board["verdicts"]["caption"]
+    assert all(r["adapts"] in (True, False) and r["gap_won"] is not None for r in agents)
     page = get(server, "/leaderboards/narrow-v1").text
     assert 'id="algorithms"' in page and 'data-runs="3"' in page and "<h2>Checkpoints</h2>" in page
     # the board leads with the algorithms table, then the figure, then the checkpoints
@@ -555,8 +561,8 @@ def test_a_submitters_runs_of_one_algorithm_share_a_row_of_the_algorithms_table(
     png = get(server, "/leaderboards/narrow-v1/curves.png")
     assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
 
-    # the figure the server draws: one line per row of the algorithms table (the PLOTTED best), a band (over training
-    # runs) only for an algorithm of several runs; the checkpoints' figure had a line and a band per entry
+    # the figure the server draws: one panel per row of the algorithms table (the PLOTTED best), a band (over training
+    # runs) only for an algorithm of several runs
     from mewa_bench.service.db import make_engine, session_factory
     from mewa_bench.service.settings import Settings
     from mewa_bench.service.web.curves import PLOTTED, board_curves
@@ -565,14 +571,15 @@ def test_a_submitters_runs_of_one_algorithm_share_a_row_of_the_algorithms_table(
     engine = make_engine(settings.database_url)
     try:
         with session_factory(engine)() as session:
-            axes = board_curves(session, settings, "narrow-v1", load_suite("narrow-v1")).axes[0]
+            panels = [ax for ax in board_curves(session, settings, "narrow-v1", load_suite("narrow-v1")).axes
+                      if ax.get_visible()]
     finally:
         engine.dispose()
     shown = board["algorithms"][:PLOTTED]
     expected = [f"{r['algorithm']} ({r['runs']} run{'s' if r['runs'] > 1 else ''})".replace("$", r"\$")
                 + (" (privileged)" if r["privileged"] else "") for r in shown]
-    labels = [line.get_label() for line in axes.get_lines()]
-    assert labels[:-5] == expected and len(labels) == len(shown) + 5  # and the five reference lines
-    assert len(axes.collections) == sum(r["runs"] > 1 for r in shown)
+    titles = [ax.get_title().split("\n")[0] for ax in panels]
+    assert titles == expected and all(len(ax.get_lines()) == 1 + 5 for ax in panels)  # and the five reference lines
+    assert [len(ax.collections) for ax in panels] == [int(r["runs"] > 1) for r in shown]
     if ours in shown:
-        assert f"{ours['algorithm']} (3 runs)" in labels
+        assert f"{ours['algorithm']} (3 runs)" in titles

@@ -144,7 +144,7 @@ def test_the_hostile_battery_ends_contained_with_reasons(server, hidden_dir, tmp
     assert [a["runs"] for a in board["algorithms"]] == [1, 1]  # each a one-run algorithm named after its agent
     hidden_board = get(server, f"/api/leaderboards/{HIDDEN}").json()
     assert hidden_board["algorithms"] == []  # cell fractions would tell its size
-    assert hidden_board["best_fixed_note"] is None  # and so would a count of pairs
+    assert hidden_board["gap_note"] is None
 
     output = httpx.get(f"{server.url}/api/submissions/{ids['chatty']}/output",
                        headers={"Authorization": f"Bearer {token}"}, timeout=60)

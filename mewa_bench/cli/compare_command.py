@@ -58,8 +58,8 @@ def compare(runs: list[str] = typer.Argument(None, metavar="[RUN]...", help="Run
     table = Table(title=f"{compared.suite.name}: {len(c.algorithms)} algorithm(s), in the order given",
                   box=box.SIMPLE_HEAD)
     for name in ("algorithm", "runs", "gap won", "mean score", "IQM", "adaptability", "adapts", "beats best fixed"):
-        table.add_column(name, justify="left" if name == "algorithm" else "right",
-                         overflow="fold")  # a name is wrapped, never cut to an ellipsis
+        table.add_column(name, justify="left" if name == "algorithm" else "right", overflow="fold",
+                         min_width=min(len(name), 12))  # a name is wrapped, never cut to an ellipsis
     notes = []
     for a, row in zip(c.algorithms, compared.algorithms):
         table.add_row(escape(a.algorithm), str(len(a.runs)), gap_cell(row.gap_won), _ci(row.mean), _ci(a.iqm),

@@ -18,8 +18,10 @@ standard error x sqrt(n / (n - 1)) x Student's t(n - 1) for n runs (`scoring.boo
 Why whole runs, not runs stratified by pair: a training seed is better or worse on every pair at
 once, and resampling pairs' runs independently averages that away (synthetic runs: ~60-70%
 coverage of 95% intervals at 3 to 10 runs; whole runs with the correction: ~95%; see
-tests/test_aggregate.py). Fewer than MIN_RUNS runs: a note that the interval cannot include
-training variance (one run: no interval at all).
+tests/test_aggregate.py). Skewed run effects (a fifth of the seeds failing) bring the coverage down to
+87-91% at 3 to 10 runs, and the bootstrap's percentile and BCa intervals do worse
+(benchmarks/interval_coverage.py, docs/protocol.md section 3b). Fewer than MIN_RUNS runs: a note that the
+interval cannot include training variance (one run: no interval at all).
 """
 
 from __future__ import annotations
