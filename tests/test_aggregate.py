@@ -196,3 +196,18 @@ def test_performance_profile_is_the_fraction_of_cells_above_each_threshold() -> 
     for tau, e in zip(PROFILE_THRESHOLDS, s.profile):
         assert e.mean == sum(c > tau for c in cells) / len(cells)
         assert 0.0 <= e.low <= e.mean <= e.high <= 1.0
+
+
+def test_when_a_fifth_of_the_seeds_fail_the_interval_over_runs_covers_less_as_the_docs_say() -> None:
+    """The skewed run model of benchmarks/interval_coverage.py (each seed fails with probability 0.2: -0.25 on every
+    pair) at 5 runs: docs/protocol.md section 3b states 87% (1000 repetitions); here 200 of them, SE 0.024."""
+    rng = np.random.default_rng(55)
+    mu = rng.uniform(0.6, 0.95, P)
+    reps, hits = 200, 0
+    for _ in range(reps):
+        data = synthetic_runs(rng, 5, mu, 0.04)
+        failed = rng.random(5) < 0.2
+        data = [Run(r.name, r.algorithm, r.curves - 0.25 * f) for r, f in zip(data, failed)]
+        s = aggregate(data, {}, samples=300, seed=int(rng.integers(1 << 31)), pairwise=False).algorithms[0]
+        hits += s.mean.low <= mu.mean() + 0.02 - 0.2 * 0.25 <= s.mean.high
+    assert 0.80 <= hits / reps <= 0.935, hits / reps  # below the nominal 95%, as documented

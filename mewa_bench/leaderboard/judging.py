@@ -104,11 +104,17 @@ def judge_board(rows: Sequence[Row], algorithms: Sequence[AlgorithmRow], runs: M
     return Judged(tuple(judged_rows), tuple(judged_algorithms), family)
 
 
+def _counted(n: int, noun: str) -> str:
+    """`1 checkpoint row`, `30 checkpoint rows`."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def family_caption(family: Family, checkpoints: int, algorithms: int, what: str = "board") -> str:
     """The sentence naming the verdicts' procedure and family."""
     return (f"Verdicts (adapts: adaptability > 0; beats best fixed: gap won > 0) are one-sided tests on each row's "
             f"95% interval statistic, decided together by {PROCEDURE} procedure over all {family.size} tests this "
-            f"{what} shows ({checkpoints} checkpoint rows and {algorithms} algorithms of several runs, two tests "
+            f"{what} shows ({_counted(checkpoints, 'checkpoint row')} and {_counted(algorithms, 'algorithm')} of "
+            f"several runs, two tests "
             f"each; a one-run algorithm's are its checkpoint's): the chance that the {what} shows any false \"yes\" "
             f"is at most {family.alpha:.1%}. \"no\" means not shown at that level.")
 
