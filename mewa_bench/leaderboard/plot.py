@@ -80,7 +80,7 @@ def curves_figure(board: Board):
     n = max(len(algorithms), 1)
     cols = min(COLUMNS, n)
     rows = math.ceil(n / cols)
-    fig = Figure(figsize=(3.4 * cols + 0.4, 2.9 * rows + 1.0), dpi=100)
+    fig = Figure(figsize=(3.4 * max(cols, 2) + 0.4, 2.9 * rows + 1.0), dpi=100)  # one panel: still readable
     FigureCanvasAgg(fig)
     axes = fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False).reshape(-1)
     k = len(algorithms[0].curve) if algorithms else EPISODES_PER_PAIR
