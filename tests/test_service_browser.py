@@ -197,7 +197,7 @@ def test_leaderboard_page_shows_the_api_ranking_and_the_figure(page, server, tok
     assert figure.evaluate("i => i.naturalWidth") > 600 and figure.evaluate("i => i.naturalHeight") > 300
     png = page.request.get(server.url + figure.get_attribute("src"))
     assert png.status == 200 and png.headers["content-type"] == "image/png" and png.body()[:8] == b"\x89PNG\r\n\x1a\n"
-    caption = page.locator("figure figcaption").inner_text()  # one line per algorithm, from every run
+    caption = page.locator("figure figcaption").inner_text()  # one panel per algorithm, from every run
     algorithms, runs = len(board["algorithms"]), sum(r["runs"] for r in board["algorithms"])
     assert f"{algorithms} algorithms, from {runs} runs:" in caption and runs == board["entries"] >= 3
     after = "t => t.compareDocumentPosition(document.querySelector('#curves'))"

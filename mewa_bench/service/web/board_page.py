@@ -142,7 +142,7 @@ def _figure(board: dict[str, Any], figure_version: str | None, plotted: int, dra
 def board_html(board: dict[str, Any], figure_version: str | None, plotted: int,
                drawn: tuple[int, int] = (0, 0)) -> str:
     """The whole page of a board (the JSON of /api/leaderboards/<board>): the algorithms table (public boards),
-    the figure (one line per algorithm, `drawn`: from how many algorithms and runs), then the checkpoints' table."""
+    the figure (one panel per algorithm, `drawn`: from how many algorithms and runs), then the checkpoints' table."""
     head = "".join(f"<th>{esc(h)}</th>" + ("<th>source</th>" if h == "agent" else "") for h in HEADER)
     rows = "\n".join(table_row(r) for r in board["rows"])
     notes = "".join(f"<li>{esc(n)}</li>" for n in NOTES)

@@ -1,4 +1,4 @@
-"""The adaptation-curve figure of a board, drawn by the static leaderboard's `curves_figure`: one line per algorithm.
+"""The adaptation-curve figure of a board, drawn by the static leaderboard's `curves_figure`: one panel per algorithm.
 
 The algorithms are the board's algorithms table's (`boards.board_algorithms`: a submitter's runs
 under one algorithm name, from their stored per-pair curves), each drawn with its 95% CI band over
