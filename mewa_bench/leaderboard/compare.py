@@ -133,10 +133,12 @@ def common_seeds(runs: Sequence[tuple[Path, dict[str, Any]]]) -> tuple[int, ...]
     default = default_seeds(runs[0][1]["suite"]["name"])
     counts = Counter(seed_sets)
     expected = default if default in counts else max(counts, key=lambda s: (counts[s], -seed_sets.index(s)))
+    counted = expected == tuple(range(len(expected)))  # `--seeds N` means 0..N-1
+    option = str(len(expected)) if counted else ",".join(map(str, expected))
     for (path, _), seeds in zip(runs, seed_sets):
         if seeds != expected:
             fix = ("re-evaluate it with the protocol's default seeds (omit --seeds)" if expected == default
-                   else f"re-evaluate it with --seeds {len(expected) if expected == tuple(range(len(expected))) else ','.join(map(str, expected))}")
+                   else f"re-evaluate it with --seeds {option}")
             raise CompareError(f"{path}: evaluated with {_seeds_text(seeds)}, the other runs with "
                                f"{_seeds_text(expected)}; runs are compared on the same seeds: {fix}")
     return expected
