@@ -10,6 +10,7 @@ its point and 95% interval, with 0 (the best fixed policy) and 100% (max expecte
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ _REFERENCE_STYLES = {"known-worker optimum": ("#777777", (0, (1, 1.5))), "max ex
                      "random task-specific": ("#999999", (0, (3, 3))), "random": ("#aaaaaa", (0, (6, 2, 1, 2)))}
 BEST_FIXED = "best fixed policy"
 COLUMNS = 4
+TITLE_WIDTH = 40  # characters of a panel title's line: four panels side by side never overlap
 _LINE_STYLES = ("-", "--", "-.", ":")
 
 
@@ -54,8 +56,10 @@ def panel_titles(board: Board) -> list[str]:
     for algo, row in zip(board.comparison.algorithms, board.algorithms):
         runs = f"{len(algo.runs)} run{'s' if len(algo.runs) > 1 else ''}"
         within = " within run" if row.within_run else ""
-        titles.append(f"{_text(algo.algorithm)} ({runs}){' (privileged)' if row.privileged else ''}\n"
-                      f"gap won {gap_cell(row.gap_won)}{within}")
+        name = f"{_text(algo.algorithm)} ({runs}){' (privileged)' if row.privileged else ''}"
+        # a long name wraps within its panel instead of running into the next panel's title
+        titles.append("\n".join(textwrap.wrap(name, TITLE_WIDTH, break_on_hyphens=False))
+                      + f"\ngap won {gap_cell(row.gap_won)}{within}")
     return titles
 
 
