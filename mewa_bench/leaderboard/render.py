@@ -178,7 +178,7 @@ def csv_text(board: Board) -> str:
     return out.getvalue()
 
 
-_CSS = """body{font-family:sans-serif;max-width:75em;margin:2em auto;padding:0 1em;color:#222}
+_CSS = """body{font-family:sans-serif;max-width:100em;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;margin:1em 0;font-size:.9em}th,td{border:1px solid #ccc;padding:.3em .6em}
 th{background:#f0f0f0}td.n{text-align:right;font-variant-numeric:tabular-nums}tr.reference{color:#555;font-style:italic}
 tr.privileged{color:#654}img{max-width:100%}code{font-size:.9em}"""
