@@ -282,7 +282,8 @@ def synthetic_entry(suite: Suite, name: str, algorithm: str, level: float) -> En
 
 
 def test_a_panel_per_algorithm_with_the_reference_lines_and_the_best_fixed_one_on_top(narrow: Suite) -> None:
-    from mewa_bench.leaderboard.board import Board, make_board
+    from mewa_bench.leaderboard.assemble import make_board
+    from mewa_bench.leaderboard.board import Board
     from mewa_bench.leaderboard.plot import curves_figure, gap_won_figure
 
     entries = [synthetic_entry(narrow, f"a-seed{i}", "a", 0.8 + 0.01 * i) for i in range(3)]

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 from mewa_bench.design.suites import Suite
-from mewa_bench.leaderboard.board import Row, run_name
+from mewa_bench.leaderboard.board import Row, competition_ranks, run_name
 from mewa_bench.leaderboard.judging import checkpoint_estimates
 from mewa_bench.leaderboard.validate import Entry
 from mewa_bench.protocol.aggregate import AlgorithmComparison, Run, aggregate
@@ -53,8 +53,6 @@ def rows_of(best_fixed: float, comparison: AlgorithmComparison, privileged: set[
     """The table's rows, best mean first; `privileged` and `unranked` algorithms get no rank; equal means share one.
     A one-run algorithm whose checkpoint row is in `runs` (run name -> row; `pairs`: the suite's) takes that row's
     within-run intervals."""
-    from mewa_bench.leaderboard.board import competition_ranks
-
     ranked = [s for s in comparison.algorithms if s.algorithm not in privileged | unranked]
     ranks = dict(zip((s.algorithm for s in ranked), competition_ranks([s.mean.mean for s in ranked])))
     rows = []

@@ -70,30 +70,6 @@ class Board:
         return float(self.suite.summary["score"]["best_fixed"])
 
 
-def make_board(suite: Suite, entries: list[Entry], root_label: str) -> Board:
-    """Sort and rank the entries and merge in the reference lines, all by mean score; group them by algorithm;
-    the verdicts over everything the board shows."""
-    from mewa_bench.leaderboard.algorithms import compare_entries, rows_of
-    from mewa_bench.leaderboard.judging import judge_board, with_gap_won
-
-    ordered = sorted(entries, key=lambda e: (-e.scores.mean.mean, e.agent, str(e.path)))
-    ranks = competition_ranks([e.scores.mean.mean for e in ordered if not e.privileged])
-    ranked = iter(ranks)
-    best_fixed = float(suite.summary["score"]["best_fixed"])
-    rows = [with_gap_won(entry_row(e, None if e.privileged else next(ranked), root_label), best_fixed)
-            for e in ordered]
-    runs = {run_name(e): row for e, row in zip(ordered, rows)}
-    rows += reference_rows(suite)
-    rows.sort(key=lambda r: (-r.mean, _KIND_ORDER[r.kind], r.name, r.file))
-    if not ordered:
-        return Board(suite, (), tuple(rows))
-    comparison = compare_entries(suite, ordered)
-    privileged = {e.algorithm or e.agent for e in ordered if e.privileged}
-    algorithms = rows_of(best_fixed, comparison, privileged, runs=runs, pairs=len(suite.pairs))
-    judged = judge_board(rows, algorithms, runs, pairs=len(suite.pairs))
-    return Board(suite, tuple(ordered), judged.rows, comparison, judged.algorithms, judged.family)
-
-
 def run_name(entry: Entry) -> str:
     """A run's name on a board and in a comparison: its results file's path (unique)."""
     return str(entry.path)

@@ -15,7 +15,8 @@ from pathlib import Path
 from mewa_bench.design.suites import ALL_SUITES, load_suite
 from mewa_bench.files import write_atomic
 from mewa_bench.leaderboard import algorithm_tables, cells
-from mewa_bench.leaderboard.board import Board, make_board
+from mewa_bench.leaderboard.assemble import make_board
+from mewa_bench.leaderboard.board import Board
 from mewa_bench.leaderboard.plot import plot_curves, plot_gap_won
 from mewa_bench.leaderboard.render import cells_name, csv_text, gap_image, index_html, markdown
 from mewa_bench.leaderboard.validate import Entry, InvalidResults, SuiteCache, find_results_files, load_entry

@@ -27,6 +27,9 @@ a zero-width interval. Pairs with fewer than CV_MIN_SEEDS seeds are scored witho
 (their intervals are wider and keep their coverage), and the scores say so in a warning; the
 coverage is measured on synthetic runs at 2 to 16 seeds per pair (tests/test_interval_coverage.py).
 These CIs are conditional on the evaluated checkpoint; training-run variance is `protocol.aggregate`'s.
+
+The module is longer than 500 lines because it is the one home of every score formula: splitting the
+adjustment from the statistics it feeds would put one formula in two rooms.
 """
 
 from __future__ import annotations
