@@ -53,6 +53,11 @@ def serve(ctx: typer.Context,
                                       help="Evaluate agents on the hidden test suites too."),
           lease_seconds: float = typer.Option(60.0, help="A job whose worker stops renewing it for this long is re-run."),
           max_attempts: int = typer.Option(3, min=1, help="Claims of a job before it is given up."),
+          max_infra_retries: int = typer.Option(None, min=0, help="Hand-backs of a job after infrastructure faults "
+                                                                   "(database, disk), not counted as attempts, before "
+                                                                   "it fails (default 10)."),
+          reserve_mb: float = typer.Option(None, min=0, help="Free space kept on the data dir's disk, in MB: an upload "
+                                                             "that would go below it gets a 507 (default 256)."),
           rate_limit: int = typer.Option(None, min=0, help="Submissions per token and minute (default 60)."),
           daily_results: int = typer.Option(None, min=0, help="Results uploads per token and day (default 200)."),
           daily_agents: int = typer.Option(None, min=0, help="Agent submissions per token and day (default 20)."),
@@ -85,7 +90,8 @@ def serve(ctx: typer.Context,
                   "uploads_in_flight": uploads_in_flight}
         settings = _settings(data_dir, db, seeds=seeds, hidden=hidden, lease_seconds=lease_seconds,
                              max_attempts=max_attempts, limits=Limits(**{k: v for k, v in limits.items() if v is not None}),
-                             job_seconds=job_seconds, rank_uploads=rank_uploads,
+                             job_seconds=job_seconds, rank_uploads=rank_uploads, max_infra_retries=max_infra_retries,
+                             reserve_bytes=None if reserve_mb is None else int(reserve_mb * MiB),
                              scratch_bytes=None if scratch_mb is None else int(scratch_mb * MiB),
                              memory_bytes=None if memory_mb is None else int(memory_mb * MiB))
         console.print(f"mewa-bench service on http://{host}:{port} (data dir {settings.data_dir}, "
@@ -240,7 +246,10 @@ def submit(file: Path = typer.Argument(..., metavar="FILE", exists=True, dir_oka
                                                     "name share a row of the boards' algorithms table (default: "
                                                     "run.json's beside the file, else a one-run algorithm)."),
            wait: bool = typer.Option(False, "--wait", metavar="", help="Wait until it is scored, rejected or failed."),
-           timeout: float = typer.Option(None, help="With --wait: give up waiting after this many seconds.")) -> None:
+           timeout: float = typer.Option(None, help="With --wait: give up waiting after this many seconds."),
+           retry_seconds: float = typer.Option(120.0, min=0, help="Keep resending through connection errors and "
+                                                                  "503s for this long (safe: the submission carries "
+                                                                  "an Idempotency-Key).")) -> None:
     """Submit a results file (re-scored by the server) or an agent (evaluated in its sandbox) to a server."""
     from mewa_bench.service import client
 
@@ -251,10 +260,11 @@ def submit(file: Path = typer.Argument(..., metavar="FILE", exists=True, dir_oka
             _fail(ValueError(f"--agent-arg {item!r}: expected key=value"))
         args[key] = value
     try:
-        answer = client.submit(server, file, token, suite, name, checkpoint, args, algorithm)
+        answer = client.submit(server, file, token, suite, name, checkpoint, args, algorithm, retry_seconds)
     except (client.ServiceError, OSError, ValueError) as e:  # ValueError: a run.json that cannot be read
         _fail(e)
-    console.print(f"submission [bold]{answer['id']}[/bold] accepted ({answer['status']})")
+    again = " (it had arrived before: its answer had been lost)" if answer.get("resent") else ""
+    console.print(f"submission [bold]{answer['id']}[/bold] accepted ({answer['status']}){again}")
     if wait:
         _print_status(client.wait(server, answer["id"], timeout))
     else:

@@ -5,10 +5,16 @@ description is at /openapi.json (and readable at /docs, a page built from it, of
 is JSON `{"error": code, "detail": message}`, including FastAPI's own request validation errors and
 an unexpected failure (a 500 naming no internals). Every answer carries the security headers
 (`guards.SecurityHeaders`); submissions are received at most `limits.uploads_in_flight` at once.
+
+Faults have answers of their own: a database outage is a 503 with Retry-After (`outages`), a full
+disk a 507 (`storage`). For operators: `/api/live` (the process answers), `/api/ready` (the database
+answers, the disk has more than its reserve free, the workers run; else 503 naming what is not) and
+`/metrics` (Prometheus, `metrics`); every error answer is counted there by its reason.
 """
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 from mewa_bench.extras import require
@@ -51,6 +57,10 @@ def create_app(settings: Settings) -> Any:
     from mewa_bench.service.jobs import queue_counts
     from mewa_bench.service.guards import INTERNAL_ERROR, SecurityHeaders, UploadGate
     from mewa_bench.service.limits import BodySizeLimit, RateLimiter
+    from mewa_bench.service.metrics import Metrics
+    from mewa_bench.service.outages import database_unavailable, is_outage
+    from mewa_bench.service.storage import StorageGuard, is_disk_full
+    from sqlalchemy.exc import SQLAlchemyError
     from mewa_bench.service.web.docs_page import docs_html
     from mewa_bench.service.routes import datasets, leaderboards, submissions, suites
     from mewa_bench.service import web  # the pages; included first, so its / and /leaderboards/<board> win
@@ -65,30 +75,54 @@ def create_app(settings: Settings) -> Any:
     app.state.sessions = session_factory(engine)
     app.state.rate = RateLimiter()
     app.state.suites = SuiteCache()
+    app.state.storage = storage = StorageGuard(settings.data_dir, settings.reserve_bytes)
+    app.state.workers = lambda: (0, 0)  # (alive, expected): `server.run_server` sets its pool's
+    app.state.metrics = metrics = Metrics(app.state.sessions, storage, lambda: app.state.workers())
+
+    def answer(error: ApiError) -> JSONResponse:
+        """An ApiError as its JSON answer, counted by its reason."""
+        metrics.rejected(error.code, error.status)
+        return JSONResponse(error.body(), status_code=error.status, headers=error.headers)
 
     @app.exception_handler(ApiError)
     async def api_error(request: Request, error: ApiError) -> JSONResponse:
         """An ApiError as its JSON answer."""
-        return JSONResponse(error.body(), status_code=error.status, headers=error.headers)
+        return answer(error)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(request: Request, error: RequestValidationError) -> JSONResponse:
         """A request FastAPI could not parse (a missing form field...) as a 400 naming the fields."""
         problems = "; ".join(f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg')}" for e in error.errors())
-        return JSONResponse({"error": "invalid_request", "detail": f"malformed request: {problems}"}, status_code=400)
+        return answer(ApiError(400, "invalid_request", f"malformed request: {problems}"))
 
     @app.exception_handler(HTTPException)
     async def http_error(request: Request, error: HTTPException) -> JSONResponse:
         """Starlette's own errors (unknown path, wrong method) in the same JSON form."""
         code = {404: "not_found", 405: "method_not_allowed"}.get(error.status_code, "http_error")
-        return JSONResponse({"error": code, "detail": str(error.detail)}, status_code=error.status_code,
-                            headers=getattr(error, "headers", None))
+        return answer(ApiError(error.status_code, code, str(error.detail), getattr(error, "headers", None)))
+
+    def fault(request: Request, error: Exception) -> JSONResponse:
+        """A full disk (507), a database outage (503), else the JSON 500 of anything unexpected."""
+        if is_disk_full(error):
+            return answer(storage.refused())
+        if is_outage(error):
+            return answer(database_unavailable())
+        import logging
+
+        logging.getLogger("mewa_bench.service").error("%s %s failed", request.method, request.url.path,
+                                                      exc_info=error)
+        metrics.rejected("internal", 500)
+        return JSONResponse(json.loads(INTERNAL_ERROR), status_code=500)
+
+    app.add_exception_handler(SQLAlchemyError, fault)
+    app.add_exception_handler(OSError, fault)
 
     @app.exception_handler(Exception)
     async def unexpected(request: Request, error: Exception) -> Response:
         """Anything else: a JSON 500 that names no internals (the server's log has the traceback)."""
         import logging
 
+        metrics.rejected("internal", 500)
         logging.getLogger("mewa_bench.service").exception("%s %s failed", request.method, request.url.path)
         return Response(INTERNAL_ERROR, status_code=500, media_type="application/json")
 
@@ -108,11 +142,32 @@ def create_app(settings: Settings) -> Any:
                 "schema": schema_revision(engine), "jobs": counts, "sandbox_limits": cgroup_support().describe(),
                 "uploads_ranked": settings.rank_uploads}
 
+    @app.get("/api/live", tags=["service"], summary="Does the process answer")
+    def live() -> dict[str, str]:
+        """Always `{"status": "live"}` while the API process serves (needs neither the database nor the disk)."""
+        return {"status": "live"}
+
+    @app.get("/api/ready", tags=["service"], summary="Can the service take submissions", response_model=None,
+             responses={503: {"description": "Not ready: `checks` says what is not"}})
+    def ready() -> Any:
+        """The database answers, the data dir's disk has more than its reserve free, this server's workers run."""
+        from mewa_bench.service.readiness import readiness
+
+        body = readiness(engine, storage, app.state.workers())
+        headers = None if body["ready"] else {"Retry-After": "5"}
+        return JSONResponse(body, status_code=200 if body["ready"] else 503, headers=headers)
+
+    @app.get("/metrics", include_in_schema=False, response_model=None)
+    def prometheus(request: Request) -> Any:
+        """Prometheus metrics (text exposition format, or OpenMetrics if asked for)."""
+        data, content_type = metrics.render(request.headers.get("accept"))
+        return Response(data, media_type=content_type)
+
     for module in (web, suites, leaderboards, datasets, submissions):
         app.include_router(module.router)
-    app.add_middleware(BodySizeLimit, limit_of=body_limits(settings))
+    app.add_middleware(BodySizeLimit, limit_of=body_limits(settings), count=metrics.rejected)
     app.add_middleware(UploadGate, paths=frozenset({"/api/submissions/results", "/api/submissions/agent"}),
-                       limit=settings.limits.uploads_in_flight)
+                       limit=settings.limits.uploads_in_flight, count=metrics.rejected)
     app.add_middleware(SecurityHeaders)  # added last: the outermost, so every answer has the headers
     return app
 

@@ -1,13 +1,17 @@
 """The client side: `mewa-bench submit`, `mewa-bench status` and the server's dataset catalog.
 
 Errors from the server keep its reason: `ServiceError` carries the HTTP status and the JSON
-`detail` the API answers with.
+`detail` the API answers with. Requests are retried through connection errors and 503s (a busy
+server, a database outage) with a growing pause, or the server's Retry-After, for up to
+RETRY_SECONDS; a submission carries an `Idempotency-Key` made once per `submit`, so sending it
+again after an answer that never arrived returns the submission the first send made.
 """
 
 from __future__ import annotations
 
 import io
 import os
+import secrets
 import tarfile
 import time
 from pathlib import Path
@@ -51,23 +55,40 @@ def _answer(response: Any) -> Any:
     raise ServiceError(f"{response.request.url}: HTTP {response.status_code}: {detail}", response.status_code, code)
 
 
-BUSY_RETRIES = 20  # a server receiving its limit of submissions answers 503 with Retry-After: wait and retry
+RETRY_SECONDS = 120.0  # how long a request is retried through connection errors and 503s
+FIRST_PAUSE, LONGEST_PAUSE = 0.5, 8.0
 
 
-def _request(method: str, url: str, **kwargs: Any) -> Any:
-    """One request (retried while the server is busy); its JSON answer, or a ServiceError with the reason."""
-    import time
-
+def _request(method: str, url: str, retry_seconds: float = RETRY_SECONDS, **kwargs: Any) -> Any:
+    """One request, retried through connection errors and 503s for up to `retry_seconds` (only requests that are
+    safe to repeat are sent here: reads, and submissions with an Idempotency-Key); its JSON answer, or a
+    ServiceError with the reason."""
     httpx = _httpx()
-    try:
-        for _ in range(BUSY_RETRIES):
+    deadline, pause = time.monotonic() + retry_seconds, FIRST_PAUSE
+    while True:
+        try:
             response = httpx.request(method, url, timeout=TIMEOUT, **kwargs)
-            if response.status_code != 503 or "retry-after" not in response.headers:
-                break
-            time.sleep(min(30.0, float(response.headers["retry-after"])))
+        except httpx.TransportError as e:
+            if time.monotonic() + pause > deadline:
+                raise ServiceError(f"{url}: cannot reach the server: {e}") from None
+            time.sleep(pause)
+            pause = min(LONGEST_PAUSE, pause * 2)
+            continue
+        if response.status_code == 503:
+            wait = _retry_after(response, pause)
+            if time.monotonic() + wait <= deadline:
+                time.sleep(wait)
+                pause = min(LONGEST_PAUSE, pause * 2)
+                continue
         return _answer(response)
-    except httpx.HTTPError as e:
-        raise ServiceError(f"{url}: cannot reach the server: {e}") from None
+
+
+def _retry_after(response: Any, default: float) -> float:
+    """The pause a 503 asks for (its Retry-After in seconds, at most 30), else `default`."""
+    try:
+        return min(30.0, max(0.0, float(response.headers["retry-after"])))
+    except (KeyError, ValueError):
+        return default
 
 
 def token_or_env(token: str | None) -> str | None:
@@ -95,7 +116,7 @@ def checkpoint_archive(path: Path) -> tuple[str, bytes]:
 
 def submit(server: str, file: Path, token: str | None, suite: str = DEFAULT_SUITE, name: str | None = None,
            checkpoint: Path | None = None, agent_args: dict[str, str] | None = None,
-           algorithm: str | None = None) -> dict[str, Any]:
+           algorithm: str | None = None, retry_seconds: float = RETRY_SECONDS) -> dict[str, Any]:
     """Upload a results file (.json) or an agent (.py, with an optional checkpoint); returns the server's answer.
     `algorithm`: what the run is a training run of (default: the algorithm of a run.json beside the file, if any)."""
     from mewa_bench.protocol.config import agent_name
@@ -108,10 +129,11 @@ def submit(server: str, file: Path, token: str | None, suite: str = DEFAULT_SUIT
     token = token_or_env(token)
     if token is None:
         raise ServiceError(f"an API token is needed to submit: --token TOKEN or ${TOKEN_ENV}")
-    headers = {"Authorization": f"Bearer {token}"}
+    headers = {"Authorization": f"Bearer {token}", "Idempotency-Key": f"mewa-{secrets.token_hex(16)}"}
     if file.suffix == ".json":
         files = {"file": (file.name, file.read_bytes(), "application/json")}
-        return _request("POST", _url(server, "/api/submissions/results"), files=files, data=form, headers=headers)
+        return _request("POST", _url(server, "/api/submissions/results"), retry_seconds, files=files, data=form,
+                        headers=headers)
     if file.suffix != ".py":
         raise ServiceError(f"{file}: submit a results file (.json) or an agent file (.py)")
     files: list[tuple[str, tuple[str, bytes, str]]] = [("agent", (file.name, file.read_bytes(), "text/x-python"))]
@@ -121,7 +143,8 @@ def submit(server: str, file: Path, token: str | None, suite: str = DEFAULT_SUIT
     data: dict[str, Any] = {"suite": suite, "name": name or agent_name(file), **form}
     if agent_args:
         data["agent_arg"] = [f"{k}={v}" for k, v in agent_args.items()]
-    return _request("POST", _url(server, "/api/submissions/agent"), files=files, data=data, headers=headers)
+    return _request("POST", _url(server, "/api/submissions/agent"), retry_seconds, files=files, data=data,
+                    headers=headers)
 
 
 def status(server: str, submission_id: int) -> dict[str, Any]:

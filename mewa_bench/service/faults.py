@@ -2,7 +2,8 @@
 itself (SIGKILL: no clean-up, no answer, as a power cut would) when it reaches <point>. Without it they do nothing.
 
 Points: `results-stored` and `agent-stored`, right after an upload's files are in the data dir and before
-the transaction that adds its row commits (the window `uploads.sweep_orphans` is for).
+the transaction that adds its row commits (the window `uploads.sweep_orphans` is for); `results-committed` and
+`agent-committed`, right after that transaction and before the answer (the window `Idempotency-Key` is for).
 """
 
 from __future__ import annotations

@@ -63,8 +63,9 @@ class SecurityHeaders:
 class UploadGate:
     """At most `limit` requests on `paths` at once; the next ones get a 503 with Retry-After."""
 
-    def __init__(self, app: Any, paths: frozenset[str], limit: int) -> None:
-        self.app, self.paths, self.limit = app, paths, limit
+    def __init__(self, app: Any, paths: frozenset[str], limit: int,
+                 count: Callable[[str, int], None] = lambda reason, status: None) -> None:
+        self.app, self.paths, self.limit, self.count = app, paths, limit, count
         self.in_flight = 0
         self._lock = threading.Lock()
 
@@ -78,6 +79,7 @@ class UploadGate:
             if admitted:
                 self.in_flight += 1
         if not admitted:
+            self.count("busy", 503)
             drained = await _drain(receive)
             await _busy(send, self.limit, close=not drained)
             return

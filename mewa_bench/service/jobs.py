@@ -10,6 +10,13 @@ which it fails with the reason (`give_up_expired`). Every state change after the
 conditional on the lease owner, so a worker that lost its lease can change nothing. The jobs of one
 submission end together: when one is rejected or fails, the others stop (`end_siblings`; a running
 one's worker finds its lease gone and kills its sandbox) and no board keeps an entry of it.
+
+Infrastructure faults (the database unreachable, the disk full) are not the agent's: a worker hands
+its job back (`hand_back`) without counting the attempt, counting an infrastructure retry instead,
+up to `max_infra_retries`, after which the job fails saying so. A lease that lapsed while no process
+could reach the database is not reaped at once when it comes back: every reaping process records its
+contact in `service_clock`, and after a gap longer than a few reaper rounds only leases that expired
+before the gap are reaped until a lease's length has passed, so a surviving worker renews first.
 """
 
 from __future__ import annotations
@@ -20,7 +27,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from mewa_bench.service.models import DONE, FAILED, QUEUED, REJECTED, RUNNING, BoardEntry, Job, Submission
+from mewa_bench.service.models import DONE, FAILED, QUEUED, REJECTED, RUNNING, BoardEntry, Job, ServiceClock, Submission
 
 STOPPED = "stopped: "  # the head of the error of a job ended because another job of its submission did
 
@@ -56,15 +63,34 @@ def utc_text(seconds: float) -> str:
     return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(seconds))
 
 
-def requeue_expired(sessions: sessionmaker[Session], now: float | None = None) -> int:
+def reap_period(lease_seconds: float) -> float:
+    """How often the server's reaper looks: a fraction of the lease, between 0.2 and 5 seconds."""
+    return min(5.0, max(0.2, lease_seconds / 4))
+
+
+def reap_cutoff(session: Session, now: float, lease_seconds: float) -> float:
+    """Record this contact with the database; returns the time before which an expired lease may be reaped (`now`,
+    or the start of a gap in the contacts for a lease's length after it ended)."""
+    clock = session.get(ServiceClock, 1, with_for_update=True)
+    if clock is None:
+        session.add(ServiceClock(id=1, last_contact=now, gap_start=now, resumed=now))
+        return now
+    if now - clock.last_contact > 2 * reap_period(lease_seconds):
+        clock.gap_start, clock.resumed = clock.last_contact, now
+    clock.last_contact = max(clock.last_contact, now)
+    return now if now >= clock.resumed + lease_seconds else min(now, clock.gap_start)
+
+
+def requeue_expired(sessions: sessionmaker[Session], now: float | None = None, lease_seconds: float = 60.0) -> int:
     """Put the running jobs whose lease expired (attempts left) back in the queue, each with a note saying so;
     returns how many. Each update is conditional on the very lease it found expired: two reapers re-queue a job once."""
     from sqlalchemy import select, update
 
     now = time.time() if now is None else now
     with sessions() as session, session.begin():
+        cutoff = reap_cutoff(session, now, lease_seconds)
         stale = session.execute(select(Job.id, Job.lease_expires, Job.attempts, Job.max_attempts, Job.note).where(
-            Job.state == RUNNING, Job.lease_expires < now, Job.attempts < Job.max_attempts)).all()
+            Job.state == RUNNING, Job.lease_expires < cutoff, Job.attempts < Job.max_attempts)).all()
         requeued = 0
         for job_id, expired, attempts, max_attempts, note in stale:
             line = (f"{utc_text(now)}: the worker's lease expired at {utc_text(expired)} (it crashed, was killed or "
@@ -76,14 +102,15 @@ def requeue_expired(sessions: sessionmaker[Session], now: float | None = None) -
         return requeued
 
 
-def give_up_expired(sessions: sessionmaker[Session], now: float | None = None) -> int:
+def give_up_expired(sessions: sessionmaker[Session], now: float | None = None, lease_seconds: float = 60.0) -> int:
     """Fail the jobs whose lease expired after their last allowed attempt; returns how many."""
     from sqlalchemy import update
 
     now = time.time() if now is None else now
     with sessions() as session, session.begin():
+        cutoff = reap_cutoff(session, now, lease_seconds)
         given_up = session.execute(
-            update(Job).where(Job.state == RUNNING, Job.lease_expires < now, Job.attempts >= Job.max_attempts)
+            update(Job).where(Job.state == RUNNING, Job.lease_expires < cutoff, Job.attempts >= Job.max_attempts)
             .values(state=FAILED, finished=now, lease_owner=None, lease_expires=None,
                     error="the service gave up: the worker running this job stopped (crashed, killed or lost its "
                           "lease) on each of its attempts")
@@ -126,7 +153,7 @@ def claim(sessions: sessionmaker[Session], owner: str, lease_seconds: float, now
     from sqlalchemy.orm import aliased
 
     now = time.time() if now is None else now
-    requeue_expired(sessions, now)
+    requeue_expired(sessions, now, lease_seconds)
     candidates = aliased(Job)
     candidate = (select(candidates.id).where(candidates.state == QUEUED, candidates.attempts < candidates.max_attempts)
                  .order_by(candidates.id).limit(1)
@@ -179,6 +206,34 @@ def release(sessions: sessionmaker[Session], job_id: int, owner: str, error: str
         result = session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)
                                  .values(**values))
         return result.rowcount == 1
+
+
+INFRA_FAULT = "infrastructure fault"  # the head of a note line of a hand-back
+
+
+def hand_back(sessions: sessionmaker[Session], job_id: int, owner: str, reason: str, max_infra_retries: int) -> str | None:
+    """An infrastructure fault stopped the job: back in the queue without counting the attempt (an infrastructure
+    retry instead), or failed once it has had `max_infra_retries` of them. Returns the job's new state (None: the
+    lease was lost)."""
+    from sqlalchemy import select, update
+
+    now = time.time()
+    with sessions() as session, session.begin():
+        row = session.execute(select(Job.infra_retries, Job.note).where(
+            Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING)).one_or_none()
+        if row is None:
+            return None
+        retries, note = row
+        if retries >= max_infra_retries:
+            close(session, job_id, owner, FAILED, f"the service gave up: {retries + 1} infrastructure faults stopped "
+                                                  f"this job, the last: {reason}")
+            return FAILED
+        line = (f"{utc_text(now)}: {INFRA_FAULT} ({reason}); handed back without counting the attempt "
+                f"(infrastructure retry {retries + 1} of {max_infra_retries})")
+        session.execute(update(Job).where(Job.id == job_id, Job.lease_owner == owner, Job.state == RUNNING).values(
+            state=QUEUED, lease_owner=None, lease_expires=None, attempts=Job.attempts - 1,
+            infra_retries=Job.infra_retries + 1, note=line if not note else f"{note}\n{line}"))
+        return QUEUED
 
 
 def close(session: Session, job_id: int, owner: str, state: str, error: str | None = None) -> bool:

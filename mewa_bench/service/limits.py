@@ -53,8 +53,9 @@ def quota_error(kind: str, limit: int, oldest: float, now: float) -> ApiError:
 class BodySizeLimit:
     """ASGI middleware: a 413 JSON error for request bodies above the limit of their path."""
 
-    def __init__(self, app: Any, limit_of: Callable[[str], int | None]) -> None:
-        self.app, self.limit_of = app, limit_of
+    def __init__(self, app: Any, limit_of: Callable[[str], int | None],
+                 count: Callable[[str, int], None] = lambda reason, status: None) -> None:
+        self.app, self.limit_of, self.count = app, limit_of, count
 
     async def __call__(self, scope: dict, receive: Callable, send: Callable) -> None:
         """Pass the request on, counting its body against the limit of its path."""
@@ -64,6 +65,7 @@ class BodySizeLimit:
             return
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > limit:
+            self.count("too_large", 413)
             await _too_large(send, int(declared), limit)
             return
         seen = 0
@@ -93,6 +95,7 @@ class BodySizeLimit:
             if not exceeded:
                 raise
         if exceeded:
+            self.count("too_large", 413)
             await _too_large(send, seen, limit)
 
 

@@ -43,6 +43,7 @@ class Submission(Base):
     """One accepted upload: a results file or an agent (with its files under the data dir)."""
 
     __tablename__ = "submissions"
+    __table_args__ = (UniqueConstraint("token_id", "idempotency_key", name="uq_submissions_token_key"),)
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     token_id: Mapped[int] = mapped_column(ForeignKey("tokens.id"), index=True)
     kind: Mapped[str] = mapped_column(String(16))
@@ -54,6 +55,7 @@ class Submission(Base):
     agent_args: Mapped[str | None] = mapped_column(Text, nullable=True)  # JSON object, for agent submissions
     algorithm: Mapped[str | None] = mapped_column(String(100), nullable=True)  # the submitter's name for its algorithm
     created: Mapped[float] = mapped_column(Float, index=True)
+    idempotency_key: Mapped[str | None] = mapped_column(String(200), nullable=True)  # the client's, per token
 
 
 class Job(Base):
@@ -68,7 +70,8 @@ class Job(Base):
     hidden: Mapped[bool] = mapped_column(Boolean, default=False)
     seeds: Mapped[str] = mapped_column(Text)  # JSON list: the seeds this board ranks with, fixed at submission
     state: Mapped[str] = mapped_column(String(16), default=QUEUED, index=True)
-    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)  # claims that count against the agent
+    infra_retries: Mapped[int] = mapped_column(Integer, default=0, server_default="0")  # hand-backs after infrastructure faults
     max_attempts: Mapped[int] = mapped_column(Integer)
     lease_owner: Mapped[str | None] = mapped_column(String(100), nullable=True)
     lease_expires: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -103,3 +106,14 @@ class BoardEntry(Base):
     created: Mapped[float] = mapped_column(Float)
     source: Mapped[str] = mapped_column(String(20), default=SERVER_EVALUATED, server_default=SERVER_EVALUATED)
     run_digest: Mapped[str | None] = mapped_column(String(64), nullable=True)  # the run's episodes (one row per run)
+
+
+class ServiceClock(Base):
+    """One row: when a process that reaps expired leases last reached the database, and the latest gap in that
+    (an outage, or nobody looking), so that leases that lapsed only in a gap get a grace to be renewed."""
+
+    __tablename__ = "service_clock"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    last_contact: Mapped[float] = mapped_column(Float)
+    gap_start: Mapped[float] = mapped_column(Float)  # the last contact before the latest gap
+    resumed: Mapped[float] = mapped_column(Float)  # the first contact after it

@@ -63,7 +63,7 @@ class Reaper:
     def __init__(self, settings: Settings, period: float) -> None:
         from mewa_bench.service.db import make_engine, session_factory
 
-        self.period = period
+        self.period, self.lease = period, settings.lease_seconds
         self.engine = make_engine(settings.database_url)
         self.sessions = session_factory(self.engine)
         self._stop = threading.Event()
@@ -75,17 +75,28 @@ class Reaper:
         return self
 
     def _run(self) -> None:
-        """Reap until stopped; a database hiccup waits for the next round."""
+        """Reap until stopped; a database outage waits for the next round (said once when it starts and ends)."""
         from mewa_bench.service.jobs import give_up_expired, requeue_expired
+        from mewa_bench.service.outages import is_outage
 
+        failing = False
         while not self._stop.wait(self.period):
             try:
-                requeued, given_up = requeue_expired(self.sessions), give_up_expired(self.sessions)
-                if requeued or given_up:
-                    log.warning("reaper: %d job(s) re-queued, %d given up after their worker's lease expired",
-                                requeued, given_up)
-            except Exception:
-                log.exception("reaper: the round failed")
+                requeued = requeue_expired(self.sessions, lease_seconds=self.lease)
+                given_up = give_up_expired(self.sessions, lease_seconds=self.lease)
+            except Exception as e:
+                if not is_outage(e):
+                    log.exception("reaper: the round failed")
+                elif not failing:
+                    log.warning("reaper: the database is unreachable; trying again every %.1f s", self.period)
+                failing = True
+                continue
+            if failing:
+                log.warning("reaper: the database is reachable again")
+                failing = False
+            if requeued or given_up:
+                log.warning("reaper: %d job(s) re-queued, %d given up after their worker's lease expired",
+                            requeued, given_up)
 
     def stop(self) -> None:
         """Stop reaping."""
@@ -95,8 +106,10 @@ class Reaper:
 
 
 def reaper_period(settings: Settings) -> float:
-    """How often the reaper looks: a fraction of the lease, between 0.2 and 5 seconds."""
-    return min(5.0, max(0.2, settings.lease_seconds / 4))
+    """How often the reaper looks (`jobs.reap_period` of the lease)."""
+    from mewa_bench.service.jobs import reap_period
+
+    return reap_period(settings.lease_seconds)
 
 
 def _worker_entry(settings: Settings, log_level: int) -> None:
@@ -138,6 +151,10 @@ class WorkerPool:
                     log.warning("worker %s (pid %s) exited with %s; starting another", i, process.pid, process.exitcode)
                     self._start(i)
 
+    def alive(self) -> int:
+        """How many workers are running now."""
+        return sum(1 for p in self.processes if p is not None and p.is_alive())
+
     def pids(self) -> list[int]:
         """The workers' process ids."""
         return [p.pid for p in self.processes if p is not None and p.pid is not None]
@@ -172,6 +189,7 @@ def run_server(settings: Settings, host: str = "127.0.0.1", port: int = 8000, wo
     app = create_app(settings)
     pool = WorkerPool(settings, workers, level)
     pool.start()
+    app.state.workers = lambda: (pool.alive(), workers)  # readiness and /metrics
     reaper = Reaper(settings, reaper_period(settings)).start()
     # uvicorn stops on SIGTERM or SIGINT, then raises it again with the handler it found: make that handler a no-op,
     # so that the workers are stopped below (each puts its running job back in the queue) before we exit

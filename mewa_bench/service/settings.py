@@ -51,6 +51,8 @@ class Settings:
     scratch_bytes: int = 1 << 30  # an agent job's scratch directory on disk
     output_bytes: int = 1 << 20  # an agent's stdout and stderr kept per attempt, in the job's own log
     rank_uploads: bool = False  # rank self-reported results uploads beside server-evaluated agents
+    reserve_bytes: int = 256 * MiB  # free space kept on the data dir's disk: an upload that would go below it gets a 507
+    max_infra_retries: int = 10  # hand-backs of one job after infrastructure faults (database, disk) before it fails
 
     def __post_init__(self) -> None:
         """Keep the data dir absolute: workers and the sandbox see the same paths."""

@@ -310,9 +310,10 @@ def staging_path(settings: Settings, suffix: str) -> Path:
     return staging / f"{uuid.uuid4().hex}{suffix}"
 
 
-def check_archive(archive: Path, unpacked_limit: int) -> None:
+def check_archive(archive: Path, unpacked_limit: int) -> int:
     """A checkpoint archive: a readable tar(.gz) within the member and unpacked-size limits, without an agent.py
-    (member safety, no links or paths out of it, is checked as it is unpacked: `store_agent`)."""
+    (member safety, no links or paths out of it, is checked as it is unpacked: `store_agent`); returns its unpacked
+    size."""
     try:
         with tarfile.open(archive, "r:*") as tar:
             members = tar.getmembers()
@@ -327,6 +328,7 @@ def check_archive(archive: Path, unpacked_limit: int) -> None:
         total += m.size
     if total > unpacked_limit:
         raise ApiError(413, "too_large", f"checkpoint archive: unpacks to {total:,} bytes; the limit is {unpacked_limit:,}")
+    return total
 
 
 def store_agent(settings: Settings, agent: CheckedAgent, archive: Path | None) -> Path:

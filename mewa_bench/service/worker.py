@@ -12,6 +12,12 @@ the attempt ends however it ends (and swept if a killed worker left one), and a 
 the agent's output (`jobs/<id>/output-<attempt>.log`). While it runs, the sandbox's watchdog stops
 it mid-call if the heartbeat finds the lease gone (another worker took the job, or another job of
 the submission was rejected and stopped this one).
+
+A database outage does not end a worker: its loop waits for the database (`outages.until_reachable`),
+its heartbeat keeps trying to renew, and a job's final write is retried until it is done (each is
+conditional on the lease, so a write that did commit before the connection dropped is not made
+twice). A job stopped by an infrastructure fault (the database, a full disk) is handed back without
+counting an attempt against the agent (`jobs.hand_back`).
 """
 
 from __future__ import annotations
@@ -29,11 +35,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mewa_bench.service.db import make_engine, session_factory, transaction
-from mewa_bench.service.jobs import (Claimed, claim, close, give_up_expired, record_resume, release, renew,
-                                     utc_text)
+from mewa_bench.service.jobs import (Claimed, claim, close, give_up_expired, hand_back, record_resume, release,
+                                     renew, utc_text)
 from mewa_bench.service.models import (DONE, FAILED, REJECTED, RUNNING, SCORE, SELF_REPORTED, SERVER_EVALUATED,
                                        BoardEntry, Job, Submission)
+from mewa_bench.service.outages import is_outage, until_reachable
 from mewa_bench.service.settings import Settings
+from mewa_bench.service.storage import is_disk_full
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
@@ -86,19 +94,33 @@ class Heartbeat:
         if self.lost.is_set():
             raise LeaseLost(f"job {self.job.id}: the lease was lost")
         if self.first:
-            self.first = False
-            record_resume(self.sessions, self.job.id, self.owner, done, total)
+            try:
+                record_resume(self.sessions, self.job.id, self.owner, done, total)
+                self.first = False
+            except Exception as e:  # shown on the status only: recorded at a later unit if the database is away
+                if not is_outage(e):
+                    raise
         self.latest = (done, total)
 
     def _run(self) -> None:
         """Renew until stopped, or until the lease is found lost."""
+        failing_since = None
         while not self._stop.wait(min(max(0.1, self.lease / 3), PROGRESS_SECONDS)):
             try:
                 if not renew(self.sessions, self.job.id, self.owner, self.lease, self.latest):
                     self.lost.set()
                     return
-            except Exception:  # a database hiccup: try again at the next beat, the lease has slack
-                log.exception("job %s: renewing the lease failed", self.job.id)
+            except Exception as e:  # try again at the next beat: after an outage the first renewal keeps the job
+                if failing_since is None:
+                    failing_since = time.monotonic()
+                    (log.warning if is_outage(e) else log.exception)(
+                        "job %s: renewing the lease failed (%s); retrying at every beat", self.job.id,
+                        str(e).splitlines()[0][:200])
+                continue
+            if failing_since is not None:
+                log.warning("job %s: the lease is renewed again after %.1f s", self.job.id,
+                            time.monotonic() - failing_since)
+                failing_since = None
 
 
 def worker_id() -> str:
@@ -124,25 +146,35 @@ def run_worker(settings: Settings, supervised: bool = False, max_jobs: int | Non
     sessions = session_factory(engine)
     owner = worker_id()
     log.info("worker %s started", owner)
-    sweep_scratch(settings, sessions)
     done = 0
     try:
+        until_reachable(lambda: sweep_scratch(settings, sessions), f"worker {owner}")
         while max_jobs is None or done < max_jobs:
             if supervised and os.getppid() != parent:
                 log.warning("worker %s: the server is gone, stopping", owner)
                 return
-            give_up_expired(sessions)
-            job = claim(sessions, owner, settings.lease_seconds)
+            job = until_reachable(lambda: _next_job(settings, sessions, owner), f"worker {owner}")
             if job is None:
                 time.sleep(settings.poll_seconds)
                 continue
-            run_job(settings, sessions, job, owner)
-            sweep_scratch(settings, sessions)
+            try:
+                run_job(settings, sessions, job, owner)
+            except Exception as e:  # an outage while the job's lease was found lost: nothing of it is this worker's
+                if not is_outage(e):
+                    raise
+                log.warning("job %s: left to its lease (this worker lost it while the database was away)", job.id)
+            until_reachable(lambda: sweep_scratch(settings, sessions), f"worker {owner}")
             done += 1
     except StopWorker:
         log.info("worker %s stopped", owner)
     finally:
         engine.dispose()
+
+
+def _next_job(settings: Settings, sessions: sessionmaker[Session], owner: str) -> Claimed | None:
+    """Give up the jobs out of attempts whose lease expired, then claim the oldest queued job (None: none)."""
+    give_up_expired(sessions, lease_seconds=settings.lease_seconds)
+    return claim(sessions, owner, settings.lease_seconds)
 
 
 def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, owner: str) -> None:
@@ -153,33 +185,50 @@ def run_job(settings: Settings, sessions: sessionmaker[Session], job: Claimed, o
     from mewa_bench.service.sandbox import SandboxCancelled
 
     with Heartbeat(sessions, job, owner, settings.lease_seconds) as beat:
+        def retried(action, what: str):
+            """`action()` retried through database outages while this worker holds the job."""
+            return until_reachable(action, f"job {job.id}: {what}", gone=beat.lost.is_set)
+
         try:
             scored = _score(settings, sessions, job, beat)
         except (InvalidResults, AgentRejected) as e:
-            with transaction(sessions) as session:
-                close(session, job.id, owner, REJECTED, str(e))
+            retried(lambda: _close(sessions, job.id, owner, REJECTED, str(e)), "closing it rejected")
             log.info("job %s rejected (%s; the reason is kept with the job)", job.id, type(e).__name__)
             return
         except (LeaseLost, SandboxCancelled):
             log.warning("job %s: this worker no longer holds it (lease lost, or stopped with its submission)", job.id)
             return
         except StopWorker:
-            release(sessions, job.id, owner)
+            try:
+                release(sessions, job.id, owner)
+            except Exception:  # the database is away: the lease expires instead
+                log.warning("job %s: could not put it back in the queue (its lease will expire)", job.id)
             raise
         except Exception as e:
+            reason = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else ''}"
+            if is_outage(e) or is_disk_full(e):
+                state = retried(lambda: hand_back(sessions, job.id, owner, reason, settings.max_infra_retries),
+                                "handing it back")
+                log.warning("job %s: stopped by an infrastructure fault (%s); %s", job.id, reason,
+                            "given up" if state == FAILED else "handed back without counting the attempt")
+                return
             log.exception("job %s failed on attempt %s", job.id, job.attempts)
-            reason = f"{type(e).__name__}: {e}"
             if job.attempts >= job.max_attempts:
-                with transaction(sessions) as session:
-                    close(session, job.id, owner, FAILED, f"the service gave up after {job.attempts} attempts: {reason}")
+                retried(lambda: _close(sessions, job.id, owner, FAILED,
+                                       f"the service gave up after {job.attempts} attempts: {reason}"), "closing it")
             else:
-                release(sessions, job.id, owner, error=reason, count_attempt=True)
+                retried(lambda: release(sessions, job.id, owner, error=reason, count_attempt=True), "re-queuing it")
             return
         finally:
             shutil.rmtree(_scratch(settings, job), ignore_errors=True)
-        if beat.lost.is_set():
-            return
-    _finish(sessions, job, owner, scored)
+        if not beat.lost.is_set():  # the heartbeat goes on while the result is written (retried through an outage)
+            retried(lambda: _finish(sessions, job, owner, scored), "writing its result")
+
+
+def _close(sessions: sessionmaker[Session], job_id: int, owner: str, state: str, error: str) -> bool:
+    """End a job rejected or failed, in a transaction of its own."""
+    with transaction(sessions) as session:
+        return close(session, job_id, owner, state, error)
 
 
 def _finish(sessions: sessionmaker[Session], job: Claimed, owner: str, scored: Scored) -> None:
@@ -259,9 +308,13 @@ def _score(settings: Settings, sessions: sessionmaker[Session], job: Claimed, be
     from mewa_bench.service.scoring import score_evaluation, score_upload
     from mewa_bench.service.uploads import parse_results
 
-    with sessions() as session:
-        submission = session.get(Submission, job.submission_id)
-        file, name, args = submission.file, submission.agent_name, submission.agent_args
+    def read() -> tuple[str, str, str | None]:
+        """What the job's submission says."""
+        with sessions() as session:
+            submission = session.get(Submission, job.submission_id)
+            return submission.file, submission.agent_name, submission.agent_args
+
+    file, name, args = until_reachable(read, f"job {job.id}: reading its submission", gone=beat.lost.is_set)
     path = settings.data_dir / file
     if job.kind == SCORE:
         return score_upload(parse_results(path.read_bytes()), job.seeds, job.submission_id)

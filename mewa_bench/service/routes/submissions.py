@@ -15,6 +15,12 @@ of curated pairs), and its scores lose `units`, `control_variates` (episode coun
 `comparisons` (per-reference differences and probabilities of improvement), keeping the means,
 CIs, curve, adaptability, skill and verdicts its board row has. The full record stays in the
 database, shown to the admin by `mewa-bench serve show ID`. Public suites' jobs are shown whole.
+
+An `Idempotency-Key` header (1-200 visible ASCII characters, the client's choice, one per
+submission) makes a submission safe to send again: a resend with the same key by the same token
+is answered 200 with the submission the first one made (its id and current status), whether or not
+the first answer reached the client, instead of a 409 replay. An upload is written to the data dir
+only if it fits above the disk's reserve (`storage`), else it is a 507.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import re
 import time
 from typing import TYPE_CHECKING, Any
 
-from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Header, Request, Response, UploadFile
 
 from mewa_bench.design.suites import DEFAULT_SUITE
 from mewa_bench.service.errors import ApiError, not_found
@@ -57,10 +63,55 @@ def read_limited(upload: UploadFile, limit: int, what: str) -> bytes:
     return data
 
 
+IDEMPOTENCY_KEY = re.compile(r"^[\x21-\x7e]{1,200}$")
+KEY_HELP = "Any string of 1-200 visible ASCII characters, new for each submission: a resend with the same key " \
+           "answers 200 with the submission the first one made."
+
+
+def checked_key(key: str | None) -> str | None:
+    """An Idempotency-Key header as given, None when absent, or a 400."""
+    if key is None:
+        return None
+    if not IDEMPOTENCY_KEY.match(key):
+        raise ApiError(400, "invalid_idempotency_key", "the Idempotency-Key header must be 1-200 visible ASCII "
+                                                       "characters (letters, digits, punctuation; no spaces)")
+    return key
+
+
+def _keyed(s: Session, token: Token, key: str | None, kind: str) -> int | None:
+    """The id of the submission this token made with this key (a 422 if it was of the other kind), or None."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import Submission
+
+    if key is None:
+        return None
+    row = s.execute(select(Submission.id, Submission.kind).where(Submission.token_id == token.id,
+                                                                 Submission.idempotency_key == key)).one_or_none()
+    if row is not None and row.kind != kind:
+        raise unprocessable("idempotency_key_reused", f"this Idempotency-Key was used for submission {row.id}, a "
+                                                      f"{row.kind} submission; use a new key for each submission")
+    return None if row is None else row.id
+
+
+def _resent(request: Request, response: Response, submission_id: int) -> dict[str, Any]:
+    """The 200 answer of a resend: the submission the key made first, with its status now."""
+    from sqlalchemy import select
+
+    from mewa_bench.service.models import Job
+
+    response.status_code = 200
+    with request.app.state.sessions() as s:
+        states = list(s.scalars(select(Job.state).where(Job.submission_id == submission_id)))
+    return {"id": submission_id, "status": overall_status(states), "url": f"/api/submissions/{submission_id}",
+            "resent": True}
+
+
 def _commit(request: Request, token: Token, kind: str, suite: str, digest: str, agent_name: str, agent_sha256: str,
             relative: Path, jobs: list[tuple[str, str, bool, tuple[int, ...]]], agent_args: dict[str, str] | None = None,
-            algorithm: str | None = None) -> int:
-    """Store the submission and its jobs in one transaction, after the replay and quota checks; returns its id."""
+            algorithm: str | None = None, key: str | None = None) -> tuple[int, bool]:
+    """Store the submission and its jobs in one transaction, after the idempotency, replay and quota checks; returns
+    its id and whether it is new (False: the key's earlier submission, nothing stored)."""
     from sqlalchemy import func, select
     from sqlalchemy.exc import IntegrityError
 
@@ -74,6 +125,8 @@ def _commit(request: Request, token: Token, kind: str, suite: str, digest: str, 
     try:
         with transaction(request.app.state.sessions) as s:
             s.execute(select(Token.id).where(Token.id == token.id).with_for_update())  # one quota count at a time
+            if (earlier := _keyed(s, token, key, kind)) is not None:
+                return earlier, False
             _refuse_replay(s, digest, kind)
             limit = token.daily_results if kind == RESULTS else token.daily_agents
             limit = (limits.daily_results if kind == RESULTS else limits.daily_agents) if limit is None else limit
@@ -83,14 +136,17 @@ def _commit(request: Request, token: Token, kind: str, suite: str, digest: str, 
                 raise quota_error("results" if kind == RESULTS else "agent", limit, oldest or now, now)
             submission = Submission(token_id=token.id, kind=kind, suite=suite, digest=digest, agent_name=agent_name,
                                     agent_sha256=agent_sha256, file=relative.as_posix(), created=now,
-                                    algorithm=algorithm, agent_args=None if agent_args is None else json.dumps(agent_args, sort_keys=True))
+                                    algorithm=algorithm, idempotency_key=key,
+                                    agent_args=None if agent_args is None else json.dumps(agent_args, sort_keys=True))
             s.add(submission)
             s.flush()
             for job_kind, board, hidden, seeds in jobs:
                 add_job(s, submission.id, job_kind, board, hidden, seeds, settings.max_attempts)
-            return submission.id
-    except IntegrityError:  # the same upload committed concurrently by another request
+            return submission.id, True
+    except IntegrityError:  # the same upload (or key) committed concurrently by another request
         with request.app.state.sessions() as s:
+            if (earlier := _keyed(s, token, key, kind)) is not None:
+                return earlier, False
             _refuse_replay(s, digest, kind)
         raise
 
@@ -115,34 +171,44 @@ def _accepted(submission_id: int) -> dict[str, Any]:
 
 
 @router.post("/results", status_code=202, summary="Submit a results file")
-def submit_results(request: Request, file: UploadFile = File(..., description="A results file of `mewa-bench evaluate`."),
+def submit_results(request: Request, response: Response, file: UploadFile = File(..., description="A results file of `mewa-bench evaluate`."),
                    algorithm: str | None = Form(None, description="The algorithm this run is one training run of "
                                                                   "(runs under one name share a row of the algorithms "
                                                                   "table; default: a one-run algorithm named after the "
                                                                   "agent)."),
+                   idempotency_key: str | None = Header(None, description=KEY_HELP),
                    token=Depends(submitter)) -> dict[str, Any]:
     """Checked now (schema, suite and its hash, seeds, units); re-scored from its episodes by a worker."""
     settings = settings_of(request)
+    key = checked_key(idempotency_key)
+    with request.app.state.sessions() as s:
+        if (earlier := _keyed(s, token, key, RESULTS)) is not None:
+            return _resent(request, response, earlier)
+        privileged = known_privileged(s)
     request.app.state.rate.check(token.id, _rate(token, settings))
     algorithm = check_algorithm(algorithm)
     data = read_limited(file, settings.limits.results_bytes, "the results file")
-    with request.app.state.sessions() as s:
-        privileged = known_privileged(s)
     checked = check_results(data, settings, request.app.state.suites, privileged)
+    request.app.state.storage.ensure_room(len(data))
     relative = store_results(settings, data)
     crash_point("results-stored")
     try:
-        submission_id = _commit(request, token, RESULTS, checked.suite, checked.digest, checked.agent_name,
-                                checked.agent_sha256, relative, [(SCORE, checked.suite, False, checked.seeds)],
-                                algorithm=algorithm)
+        submission_id, new = _commit(request, token, RESULTS, checked.suite, checked.digest, checked.agent_name,
+                                     checked.agent_sha256, relative, [(SCORE, checked.suite, False, checked.seeds)],
+                                     algorithm=algorithm, key=key)
     except BaseException:
         remove_upload(settings, relative)
         raise
+    if not new:
+        remove_upload(settings, relative)
+        return _resent(request, response, submission_id)
+    request.app.state.metrics.uploaded(RESULTS, len(data))
+    crash_point("results-committed")
     return _accepted(submission_id)
 
 
 @router.post("/agent", status_code=202, summary="Submit an agent for evaluation")
-def submit_agent(request: Request,
+def submit_agent(request: Request, response: Response,
                  agent: UploadFile = File(..., description="The agent: a .py file with make_agent(...) or class Agent."),
                  checkpoint: UploadFile | None = File(None, description="Optional .tar(.gz), unpacked beside the agent file."),
                  suite: str = Form(DEFAULT_SUITE, description="The public suite to evaluate on (and its hidden twin)."),
@@ -152,37 +218,54 @@ def submit_agent(request: Request,
                                                                 "(runs under one name share a row of the algorithms "
                                                                 "table; default: a one-run algorithm named after the "
                                                                 "agent)."),
+                 idempotency_key: str | None = Header(None, description=KEY_HELP),
                  token=Depends(submitter)) -> dict[str, Any]:
     """Queued for the workers: evaluated in the sandbox on `suite` and on its hidden twin."""
     from mewa_bench.service.boards import hidden_boards, hidden_twin
 
     settings = settings_of(request)
     limits = settings.limits
+    storage = request.app.state.storage
+    key = checked_key(idempotency_key)
+    with request.app.state.sessions() as s:
+        if (earlier := _keyed(s, token, key, AGENT)) is not None:
+            return _resent(request, response, earlier)
     request.app.state.rate.check(token.id, _rate(token, settings))
     algorithm = check_algorithm(algorithm)
     source = read_limited(agent, limits.agent_bytes, "the agent file")
     archive: Path | None = None
+    size = len(source)
     try:
         checkpoint_sha256 = None
         if checkpoint is not None and checkpoint.filename:
+            storage.ensure_room(size + (checkpoint.size or 0))  # the archive is copied into the data dir first
             archive = staging_path(settings, ".checkpoint")
             checkpoint_sha256 = copy_limited(checkpoint.file, archive, limits.checkpoint_bytes, "the checkpoint archive")
-            check_archive(archive, limits.checkpoint_unpacked_bytes)
+            size += archive.stat().st_size
+            unpacked = check_archive(archive, limits.checkpoint_unpacked_bytes)
+            storage.ensure_room(len(source) + unpacked)
         checked = check_agent(source, agent.filename or "agent.py", name, suite, agent_arg, checkpoint_sha256)
         jobs = [(EVALUATE, suite, False, settings.seeds_for(suite))]
         jobs += [(EVALUATE, board, True, settings.seeds_for(board)) for board in hidden_boards(settings)
                  if hidden_twin(board) == suite]
+        if archive is None:
+            storage.ensure_room(size)
         relative = store_agent(settings, checked, archive)
     finally:
         if archive is not None:
             archive.unlink(missing_ok=True)
     crash_point("agent-stored")
     try:
-        submission_id = _commit(request, token, AGENT, suite, checked.digest, checked.name, checked.agent_sha256,
-                                relative, jobs, checked.agent_args, algorithm=algorithm)
+        submission_id, new = _commit(request, token, AGENT, suite, checked.digest, checked.name, checked.agent_sha256,
+                                     relative, jobs, checked.agent_args, algorithm=algorithm, key=key)
     except BaseException:
         remove_upload(settings, relative)
         raise
+    if not new:
+        remove_upload(settings, relative)
+        return _resent(request, response, submission_id)
+    request.app.state.metrics.uploaded(AGENT, size)
+    crash_point("agent-committed")
     return _accepted(submission_id)
 
 
