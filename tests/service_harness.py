@@ -3,12 +3,14 @@
 PostgreSQL is Debian's (`apt-get install postgresql`, done by .ci/setup): a throw-away cluster made
 with initdb in a temp dir and started with pg_ctl, as the unprivileged `postgres` user when the
 tests run as root. Without it the PostgreSQL variants skip, unless MEWA_REQUIRE_POSTGRES=1 (CI),
-where they fail.
+where they fail. A small file system for the disk-full tests is a tmpfs mounted for the test (root
+only); where mounting is impossible they skip, unless MEWA_REQUIRE_MOUNT=1 (CI), where they fail.
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import glob
 import json
 import os
@@ -21,7 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import httpx
 import pytest
@@ -75,6 +77,10 @@ class Postgres:
             for path in (self.root, self.sockets):
                 os.chown(path, uid, -1)
         self._run(str(self.bin / "initdb"), "-D", str(self.data), "-A", "trust", "-U", "mewa", "--no-sync")
+        self.start_again()
+
+    def start_again(self) -> None:
+        """Start the (stopped) cluster on its port."""
         options = f"-p {self.port} -k {self.sockets} -c listen_addresses=127.0.0.1 -c fsync=off -c max_connections=200"
         self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-o", options, "-l", str(self.root / "log"),
                   "-w", "start")
@@ -117,6 +123,12 @@ def _remove(cluster: Postgres) -> None:
     shutil.rmtree(cluster.root, ignore_errors=True)
 
 
+@pytest.fixture(scope="session")
+def postgres():
+    """The session's PostgreSQL cluster (None without PostgreSQL: the postgresql variants skip, or fail in CI)."""
+    return postgres_cluster()
+
+
 BACKENDS = ["sqlite", "postgresql"]
 
 
@@ -138,6 +150,24 @@ def require_sandbox() -> None:
         if os.environ.get("MEWA_REQUIRE_SANDBOX") == "1":
             pytest.fail(f"MEWA_REQUIRE_SANDBOX=1 but agents cannot be sandboxed here: {problem}")
         pytest.skip(f"agents cannot be sandboxed here: {problem}")
+
+
+@contextlib.contextmanager
+def small_filesystem(where: Path, size_mb: int, inodes: int) -> Iterator[Path]:
+    """A tmpfs of `size_mb` MiB and `inodes` files mounted at `where` for the block, unmounted after it. Skips where
+    it cannot be mounted (not root, no mount), or fails with MEWA_REQUIRE_MOUNT=1 (CI)."""
+    where.mkdir(parents=True, exist_ok=True)
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m,nr_inodes={inodes},mode=0755", "tmpfs",
+                              str(where)], capture_output=True, text=True) if shutil.which("mount") else None
+    if mounted is None or mounted.returncode != 0:
+        why = "no mount command" if mounted is None else (mounted.stderr.strip() or f"mount exited {mounted.returncode}")
+        if os.environ.get("MEWA_REQUIRE_MOUNT") == "1":
+            pytest.fail(f"MEWA_REQUIRE_MOUNT=1 but a small tmpfs cannot be mounted here (run as root): {why}")
+        pytest.skip(f"a small file system cannot be mounted here (mounting a tmpfs needs root): {why}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "--lazy", str(where)], check=True, capture_output=True)
 
 
 # -- servers ---------------------------------------------------------------------------------------

@@ -87,10 +87,11 @@ def test_api_describes_itself(server) -> None:
     paths = get(server, "/openapi.json").json()["paths"]
     for path in ("/api/suites", "/api/suites/{name}", "/api/suites/{name}/sha256", "/api/leaderboards",
                  "/api/leaderboards/{name}", "/api/datasets", "/api/datasets/{name}/{version}/archive",
-                 "/api/submissions/results", "/api/submissions/agent", "/api/submissions/{submission_id}"):
+                 "/api/submissions/results", "/api/submissions/agent", "/api/submissions/{submission_id}",
+                 "/api/live", "/api/ready"):
         assert path in paths, path
     health = get(server, "/api/health").json()
-    assert health["schema"] == "0004" and health["database"] == server.backend
+    assert health["schema"] == "0005" and health["database"] == server.backend
     assert health["uploads_ranked"] is False and "sandbox" in health["sandbox_limits"]
     docs = get(server, "/docs")  # offline: no CDN, no script, every operation listed
     assert docs.status_code == 200 and "<script" not in docs.text and "cdn" not in docs.text.lower()

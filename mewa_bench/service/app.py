@@ -62,7 +62,7 @@ def create_app(settings: Settings) -> Any:
     from mewa_bench.service.storage import StorageGuard, is_disk_full
     from sqlalchemy.exc import SQLAlchemyError
     from mewa_bench.service.web.docs_page import docs_html
-    from mewa_bench.service.routes import datasets, leaderboards, submissions, suites
+    from mewa_bench.service.routes import datasets, leaderboards, operations, submissions, suites
     from mewa_bench.service import web  # the pages; included first, so its / and /leaderboards/<board> win
 
     make_data_dir(settings)
@@ -142,28 +142,7 @@ def create_app(settings: Settings) -> Any:
                 "schema": schema_revision(engine), "jobs": counts, "sandbox_limits": cgroup_support().describe(),
                 "uploads_ranked": settings.rank_uploads}
 
-    @app.get("/api/live", tags=["service"], summary="Does the process answer")
-    def live() -> dict[str, str]:
-        """Always `{"status": "live"}` while the API process serves (needs neither the database nor the disk)."""
-        return {"status": "live"}
-
-    @app.get("/api/ready", tags=["service"], summary="Can the service take submissions", response_model=None,
-             responses={503: {"description": "Not ready: `checks` says what is not"}})
-    def ready() -> Any:
-        """The database answers, the data dir's disk has more than its reserve free, this server's workers run."""
-        from mewa_bench.service.readiness import readiness
-
-        body = readiness(engine, storage, app.state.workers())
-        headers = None if body["ready"] else {"Retry-After": "5"}
-        return JSONResponse(body, status_code=200 if body["ready"] else 503, headers=headers)
-
-    @app.get("/metrics", include_in_schema=False, response_model=None)
-    def prometheus(request: Request) -> Any:
-        """Prometheus metrics (text exposition format, or OpenMetrics if asked for)."""
-        data, content_type = metrics.render(request.headers.get("accept"))
-        return Response(data, media_type=content_type)
-
-    for module in (web, suites, leaderboards, datasets, submissions):
+    for module in (web, suites, leaderboards, datasets, submissions, operations):
         app.include_router(module.router)
     app.add_middleware(BodySizeLimit, limit_of=body_limits(settings), count=metrics.rejected)
     app.add_middleware(UploadGate, paths=frozenset({"/api/submissions/results", "/api/submissions/agent"}),

@@ -225,6 +225,8 @@ def hand_back(sessions: sessionmaker[Session], job_id: int, owner: str, reason: 
             return None
         retries, note = row
         if retries >= max_infra_retries:
+            session.execute(update(Job).where(Job.id == job_id).values(attempts=Job.attempts - 1,
+                                                                       infra_retries=Job.infra_retries + 1))
             close(session, job_id, owner, FAILED, f"the service gave up: {retries + 1} infrastructure faults stopped "
                                                   f"this job, the last: {reason}")
             return FAILED

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 from fastapi import APIRouter, Depends, File, Form, Header, Request, Response, UploadFile
 
 from mewa_bench.design.suites import DEFAULT_SUITE
-from mewa_bench.service.errors import ApiError, not_found
+from mewa_bench.service.errors import ApiError, not_found, unprocessable
 from mewa_bench.service.faults import crash_point
 from mewa_bench.service.jobs import STOPPED
 from mewa_bench.service.limits import DAY, quota_error
@@ -181,10 +181,11 @@ def submit_results(request: Request, response: Response, file: UploadFile = File
     """Checked now (schema, suite and its hash, seeds, units); re-scored from its episodes by a worker."""
     settings = settings_of(request)
     key = checked_key(idempotency_key)
-    with request.app.state.sessions() as s:
-        if (earlier := _keyed(s, token, key, RESULTS)) is not None:
-            return _resent(request, response, earlier)
+    with request.app.state.sessions() as s:  # closed before anything else opens one (SQLite: one writer at a time)
+        earlier = _keyed(s, token, key, RESULTS)
         privileged = known_privileged(s)
+    if earlier is not None:
+        return _resent(request, response, earlier)
     request.app.state.rate.check(token.id, _rate(token, settings))
     algorithm = check_algorithm(algorithm)
     data = read_limited(file, settings.limits.results_bytes, "the results file")
@@ -228,8 +229,9 @@ def submit_agent(request: Request, response: Response,
     storage = request.app.state.storage
     key = checked_key(idempotency_key)
     with request.app.state.sessions() as s:
-        if (earlier := _keyed(s, token, key, AGENT)) is not None:
-            return _resent(request, response, earlier)
+        earlier = _keyed(s, token, key, AGENT)
+    if earlier is not None:
+        return _resent(request, response, earlier)
     request.app.state.rate.check(token.id, _rate(token, settings))
     algorithm = check_algorithm(algorithm)
     source = read_limited(agent, limits.agent_bytes, "the agent file")
