@@ -62,8 +62,11 @@ def _checkpoint(files: int) -> tuple[str, bytes]:
 
 
 def _stored(data: Path) -> list[str]:
-    """Every file and folder under the data dir's uploads/, relative to it."""
-    return sorted(p.relative_to(data).as_posix() for p in (data / "uploads").rglob("*"))
+    """Every file under the data dir's uploads/ and every folder in its agents/ and staging/, relative to it."""
+    uploads = data / "uploads"
+    return sorted(p.relative_to(data).as_posix() for p in [*(uploads / "agents").glob("*"),
+                                                          *(uploads / "staging").glob("*"), *uploads.rglob("*")]
+                  if p.is_file() or p.parent.name in ("agents", "staging"))
 
 
 def _fill(path: Path, size: int) -> None:

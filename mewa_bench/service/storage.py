@@ -5,8 +5,8 @@ less the upload's size, would fall below the reserve (`Settings.reserve_bytes`);
 out of space anyway (another process filled the disk, files run out of inodes, a checkpoint
 unpacks larger than it said) is a 507 too, its partial files removed by the code that wrote them.
 Reads need no space, so the boards and statuses keep being served. The log says "storage full"
-once when the disk becomes full and "storage available again" once when it is not, however many
-requests are refused in between.
+once when the disk becomes full and "storage available again" once an upload is written whole again,
+however many requests are refused in between.
 """
 
 from __future__ import annotations
@@ -63,12 +63,16 @@ class StorageGuard:
         return free_bytes(self.data_dir)
 
     def ensure_room(self, size: int) -> None:
-        """A 507 unless `size` bytes fit above the reserve; notes the disk's state for the log."""
+        """A 507 unless `size` bytes fit above the reserve (a refusal is noted for the log)."""
         free = self.free()
         if free - size < self.reserve:
             self.note(True, free)
             raise storage_full(free, self.reserve, size)
-        self.note(False, free)
+
+    def stored(self) -> None:
+        """An upload was written whole: the disk is not full (noted for the log)."""
+        if self.full:
+            self.note(False, self.free())
 
     def refused(self) -> ApiError:
         """The 507 of a write that ran out of space midway (its partial files are gone already)."""

@@ -22,6 +22,7 @@ dir over storage without shared locks must keep to one API process per data dir 
 from __future__ import annotations
 
 import ast
+import errno
 import fcntl
 import hashlib
 import json
@@ -336,6 +337,7 @@ def store_agent(settings: Settings, agent: CheckedAgent, archive: Path | None) -
     their files); everything world-readable for the sandbox user. Returns agent.py relative to the data dir."""
     from mewa_bench.datasets.catalog import DatasetError
     from mewa_bench.datasets.downloader import extract_archive
+    from mewa_bench.service.storage import is_disk_full
 
     base = Path("uploads") / "agents" / uuid.uuid4().hex
     staging = staging_path(settings, ".agent")
@@ -346,6 +348,8 @@ def store_agent(settings: Settings, agent: CheckedAgent, archive: Path | None) -
             try:
                 extract_archive(archive, folder, "checkpoint archive")
             except DatasetError as e:  # an unsafe member (absolute path, '..', a link) or a broken stream
+                if is_disk_full(e):  # the server's fault, not the archive's: a 507
+                    raise OSError(errno.ENOSPC, "no space left unpacking the checkpoint archive") from e
                 raise unprocessable("invalid_checkpoint", str(e)) from None
         folder.mkdir(parents=True, exist_ok=True)
         write_bytes_atomic(folder / "agent.py", agent.source)

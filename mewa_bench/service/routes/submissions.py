@@ -192,6 +192,7 @@ def submit_results(request: Request, response: Response, file: UploadFile = File
     checked = check_results(data, settings, request.app.state.suites, privileged)
     request.app.state.storage.ensure_room(len(data))
     relative = store_results(settings, data)
+    request.app.state.storage.stored()
     crash_point("results-stored")
     try:
         submission_id, new = _commit(request, token, RESULTS, checked.suite, checked.digest, checked.agent_name,
@@ -253,6 +254,7 @@ def submit_agent(request: Request, response: Response,
         if archive is None:
             storage.ensure_room(size)
         relative = store_agent(settings, checked, archive)
+        storage.stored()
     finally:
         if archive is not None:
             archive.unlink(missing_ok=True)
