@@ -15,7 +15,9 @@ a token (made straight in the database before the clock) and send their share of
 Then it waits until every submission is final and checks that each was stored and scored exactly once:
 one submission row and one stored file per upload, its jobs all done, one board entry per job and none
 else, each re-scored upload's scores equal to those `finish` wrote, every status done in the API, and a
-replayed upload (also under another agent name) refused with 409. It prints throughput and p50/p95 latency of the uploads (until
+replayed upload (also under another agent name) refused with 409, and `/metrics` (read with prometheus_client's
+parser) counting the jobs by state, the submissions, the attempts and the accepted uploads as the database
+holds them. It prints throughput and p50/p95 latency of the uploads (until
 accepted, and until scored) and of the agent evaluations (until accepted, and until done).
 
     .venv/bin/python benchmarks/service_load.py [--uploads 200] [--agents 20] [--seeds 4] [--workers 2] [--db URL]
@@ -347,6 +349,28 @@ def check_exactly_once(items: list[Sent], data_dir: Path, db: str | None, boards
     return problems
 
 
+def metrics_agree(url: str, items: list[Sent], data_dir: Path, db: str | None) -> list[str]:
+    """`/metrics` against the database (jobs by state, submissions, attempts) and the accepted uploads (count and
+    bytes); returns the differences."""
+    import httpx
+    from prometheus_client.parser import text_string_to_metric_families
+
+    text = httpx.get(f"{url}/metrics", timeout=60).text
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+               for family in text_string_to_metric_families(text) for s in family.samples}
+    rows = tables(data_dir, db)
+    expected = {("mewa_submissions", (("kind", kind),)): sum(r["kind"] == kind for r in rows["submissions"])
+                for kind in ("results", "agent")}
+    for state in FINAL + ("queued", "running"):
+        expected[("mewa_jobs", (("state", state),))] = sum(j["state"] == state for j in rows["jobs"])
+    expected[("mewa_job_attempts_total", ())] = sum(j["attempts"] for j in rows["jobs"])
+    uploads = [i for i in items if i.kind == "results" and i.submission_id is not None]
+    expected[("mewa_upload_bytes_count", (("kind", "results"),))] = len(uploads)
+    expected[("mewa_upload_bytes_sum", (("kind", "results"),))] = sum(len(i.body) for i in uploads)
+    return [f"/metrics {name}{dict(labels)} = {samples.get((name, labels))}, expected {value}"
+            for (name, labels), value in expected.items() if samples.get((name, labels)) != value]
+
+
 def replay_is_refused(url: str, item: Sent) -> bool:
     """Posting an accepted upload again, as it was and under another agent name, answers 409 naming it."""
     import httpx
@@ -432,6 +456,7 @@ def main() -> None:
             raise
         report(items, start, burst_end, base, args.workers)
         problems = check_exactly_once(items, data_dir, args.db, 2 if args.hidden else 1)
+        problems += metrics_agree(url, items, data_dir, args.db)
         uploads = [i for i in items if i.kind == "results" and i.submission_id is not None]
         if uploads and not replay_is_refused(url, uploads[0]):
             problems.append("a replayed upload was not refused with 409")
@@ -446,7 +471,8 @@ def main() -> None:
         sys.exit(1)
     print(f"\nexactly once: {len(items)} submissions, each stored once (one row, one file) and scored once "
           f"(its jobs done, one board entry per job but where an upload's run gave way to the server's own "
-          f"evaluation of it, re-scored uploads equal to finish()'s scores); replay refused")
+          f"evaluation of it, re-scored uploads equal to finish()'s scores); replay refused; /metrics equal to the "
+          f"database")
     shutil.rmtree(root, ignore_errors=True)
 
 

@@ -14,7 +14,7 @@ from typing import Callable
 import httpx
 import pytest
 from service_harness import (AGENTS, BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_agent,
-                             post_results, postgres_cluster, table_rows, wait_status)
+                             post_results, postgres, table_rows, wait_status)
 
 from mewa_bench.design.suites import load_suite, shipped_path
 from mewa_bench.files import json_text
@@ -25,10 +25,6 @@ from mewa_bench.protocol.runner import evaluate
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 
-@pytest.fixture(scope="session")
-def postgres():
-    """The session's PostgreSQL cluster (None without PostgreSQL: the postgresql variants skip, or fail in CI)."""
-    return postgres_cluster()
 MAX_RESULTS_MB = 1
 MAX_AGENT_MB = 0.05  # agent files and checkpoint archives: 52,428 bytes
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import httpx
 import pytest
 from service_harness import (AGENTS, BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_agent,
-                             post_results, postgres_cluster, require_sandbox, table_rows, wait_status)
+                             post_results, postgres, require_sandbox, table_rows, wait_status)
 
 from mewa_bench.files import json_text
 from mewa_bench.protocol.results import read_results, results_text
@@ -30,10 +30,6 @@ from mewa_bench.service.faults import CRASH_VARIABLE
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 
-@pytest.fixture(scope="session")
-def postgres():
-    """The session's PostgreSQL cluster (None without PostgreSQL: the postgresql variants skip, or fail in CI)."""
-    return postgres_cluster()
 HIDDEN = "narrow-v1-hidden"
 PACED_ARGS = {"delay": "0.0005"}
 PACED_AGENT = '''"""Random play, reseeded per unit, sleeping `delay` seconds per act: a run long enough to interrupt."""
