@@ -9,7 +9,9 @@ SQLite in the data dir by default, PostgreSQL by URL), with:
 - `worker`, `scoring`, `evaluation`: worker processes re-scoring results files and evaluating agents
   (in the sandbox of `sandbox`, on public suites and on the hidden suites of `hidden`);
 - `boards`: leaderboards; `routes/`: the HTTP API; `web/`: the HTML pages; `app`, `server`: the app
-  factory and the process that runs the API and its workers; `client`: `submit`, `status`, downloads.
+  factory and the process that runs the API and its workers; `client`: `submit`, `status`, downloads;
+- `storage`, `outages`: what a full disk (507) and a database outage (503, workers waiting it out) are
+  answered with; `readiness`, `metrics`: `/api/ready` and the Prometheus metrics at `/metrics`.
 
 Imported only by the CLI; FastAPI, SQLAlchemy and uvicorn are imported inside these modules, which the
 CLI imports lazily (the `service` extra).

@@ -48,6 +48,7 @@ def create_app(settings: Settings) -> Any:
     from fastapi import FastAPI, Request
     from fastapi.exceptions import RequestValidationError
     from fastapi.responses import HTMLResponse, JSONResponse, Response
+    from sqlalchemy.exc import SQLAlchemyError
     from starlette.exceptions import HTTPException
 
     from mewa_bench import __version__
@@ -60,7 +61,6 @@ def create_app(settings: Settings) -> Any:
     from mewa_bench.service.metrics import Metrics
     from mewa_bench.service.outages import database_unavailable, is_outage
     from mewa_bench.service.storage import StorageGuard, is_disk_full
-    from sqlalchemy.exc import SQLAlchemyError
     from mewa_bench.service.web.docs_page import docs_html
     from mewa_bench.service.routes import datasets, leaderboards, operations, submissions, suites
     from mewa_bench.service import web  # the pages; included first, so its / and /leaderboards/<board> win
