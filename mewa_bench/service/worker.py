@@ -147,13 +147,18 @@ def run_worker(settings: Settings, supervised: bool = False, max_jobs: int | Non
     owner = worker_id()
     log.info("worker %s started", owner)
     done = 0
+
+    def orphaned() -> bool:
+        """Whether the server that started this worker is gone."""
+        return supervised and os.getppid() != parent
+
     try:
-        until_reachable(lambda: sweep_scratch(settings, sessions), f"worker {owner}")
+        until_reachable(lambda: sweep_scratch(settings, sessions), f"worker {owner}", gone=orphaned)
         while max_jobs is None or done < max_jobs:
-            if supervised and os.getppid() != parent:
+            if orphaned():
                 log.warning("worker %s: the server is gone, stopping", owner)
                 return
-            job = until_reachable(lambda: _next_job(settings, sessions, owner), f"worker {owner}")
+            job = until_reachable(lambda: _next_job(settings, sessions, owner), f"worker {owner}", gone=orphaned)
             if job is None:
                 time.sleep(settings.poll_seconds)
                 continue
@@ -167,6 +172,10 @@ def run_worker(settings: Settings, supervised: bool = False, max_jobs: int | Non
             done += 1
     except StopWorker:
         log.info("worker %s stopped", owner)
+    except Exception as e:
+        if not (orphaned() and is_outage(e)):
+            raise
+        log.warning("worker %s: the server is gone and the database with it, stopping", owner)
     finally:
         engine.dispose()
 
