@@ -503,7 +503,7 @@ def _claim_all(url: str, owner: str, out: multiprocessing.Queue) -> None:
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_queue_claims_each_job_once_and_expires_leases(backend, tmp_path, postgres) -> None:
     from mewa_bench.service.db import make_engine, migrate, session_factory, transaction
-    from mewa_bench.service.jobs import add_job, claim, close, give_up_expired, renew
+    from mewa_bench.service.jobs import add_job, claim, close, give_up_expired, renew, requeue_expired
     from mewa_bench.service.models import Submission, Token
 
     url = database_url(backend, postgres) or f"sqlite:///{tmp_path / 'queue.db'}"
@@ -533,6 +533,8 @@ def test_queue_claims_each_job_once_and_expires_leases(backend, tmp_path, postgr
         add_job(s, 1, "evaluate", "wide-v1", False, (0,), max_attempts=2)
     now = time.time()  # the clock is passed explicitly: the test does not depend on the machine's speed
     first = claim(sessions, "a", lease_seconds=10.0, now=now)
+    for later in (3, 6):  # reapers reach the database every few seconds (a longer gap would delay reaping: below)
+        requeue_expired(sessions, now=now + later, lease_seconds=10.0)
     assert first is not None and first.attempts == 1 and claim(sessions, "b", 10.0, now=now + 9) is None
     second = claim(sessions, "b", lease_seconds=10.0, now=now + 11)  # the lease expired: another worker takes it
     assert second is not None and second.id == first.id and second.attempts == 2

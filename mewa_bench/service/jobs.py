@@ -71,10 +71,7 @@ def reap_period(lease_seconds: float) -> float:
 def reap_cutoff(session: Session, now: float, lease_seconds: float) -> float:
     """Record this contact with the database; returns the time before which an expired lease may be reaped (`now`,
     or the start of a gap in the contacts for a lease's length after it ended)."""
-    clock = session.get(ServiceClock, 1, with_for_update=True)
-    if clock is None:
-        session.add(ServiceClock(id=1, last_contact=now, gap_start=now, resumed=now))
-        return now
+    clock = session.get(ServiceClock, 1, with_for_update=True)  # its one row, made by the migration
     if now - clock.last_contact > 2 * reap_period(lease_seconds):
         clock.gap_start, clock.resumed = clock.last_contact, now
     clock.last_contact = max(clock.last_contact, now)

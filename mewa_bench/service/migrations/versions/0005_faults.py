@@ -30,6 +30,9 @@ def upgrade() -> None:
         sa.Column("gap_start", sa.Float, nullable=False),
         sa.Column("resumed", sa.Float, nullable=False),
     )
+    # its one row exists from the start, so that processes starting at once never race to insert it (the first
+    # contact then finds a gap since 1970: leases that lapsed before it wait a lease's length, as after an outage)
+    op.execute("INSERT INTO service_clock (id, last_contact, gap_start, resumed) VALUES (1, 0, 0, 0)")
 
 
 def downgrade() -> None:
