@@ -56,7 +56,7 @@ def results_convert(files: list[Path] = typer.Argument(..., metavar="FILE", help
             console.print(f"{escape(str(path))}: schema {done.schema_before} -> 3, {done.bytes_before / 1e6:.2f} MB -> "
                           f"{done.bytes_after / 1e6:.2f} MB")
         if done.rescored:
-            console.print(f"  re-scored: {len(done.rescored)} score fields changed, by at most {done.largest_change:.6f} "
-                          f"(first: {escape(done.rescored[0])})")
+            console.print(f"  re-scored: {len(done.rescored)} score fields changed or added, numbers by at most "
+                          f"{done.largest_change:.6f} (first: {escape(done.rescored[0])})")
     if failed:
         raise typer.Exit(1)

@@ -33,7 +33,7 @@ class Conversion:
     bytes_before: int
     bytes_after: int
     rescored: tuple[str, ...] = ()  # the score fields that re-scoring changed (empty: none, or not re-scored)
-    largest_change: float = 0.0  # the largest absolute change of a number among them
+    largest_change: float = 0.0  # the largest absolute change of a number among them (fields added or removed aside)
 
 
 def convert_results(path: Path, rescore: bool = False) -> Conversion:
@@ -66,7 +66,8 @@ def convert_results(path: Path, rescore: bool = False) -> Conversion:
         moved = _differences(again, results)
         text = results_text({**again, "schema_version": SCHEMA_VERSION}, str(path))
         write_atomic(path, text)
-        return Conversion(path, schema, size, len(text.encode()), tuple(moved), max(moved.values(), default=0.0))
+        finite = [v for v in moved.values() if v != float("inf")]
+        return Conversion(path, schema, size, len(text.encode()), tuple(moved), max(finite, default=0.0))
     if "scores" in results:
         _check_scores(back, results, suite, path)
     write_atomic(path, text)
@@ -128,9 +129,12 @@ def _differences(again: dict[str, Any], results: dict[str, Any]) -> dict[str, fl
     moved: dict[str, float] = {}
 
     def walk(a: Any, b: Any, at: str) -> None:
-        if isinstance(a, dict) and isinstance(b, dict) and set(a) == set(b):
-            for key in sorted(a):
-                walk(a[key], b[key], f"{at}.{key}")
+        if isinstance(a, dict) and isinstance(b, dict):
+            for key in sorted(set(a) | set(b)):
+                if key in a and key in b:
+                    walk(a[key], b[key], f"{at}.{key}")
+                else:  # a field today's scoring adds (or no longer writes)
+                    moved[f"{at}.{key}"] = float("inf")
         elif isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
             for i, (x, y) in enumerate(zip(a, b)):
                 walk(x, y, f"{at}[{i}]")
