@@ -17,6 +17,8 @@ ALLOWED = {
     # The offline baseline learns from a training dataset: reading one, with its checks (no test worker, no protocol
     # key), is the datasets package's (lazily, when training starts).
     ("mewa_bench.agents.dpt", "mewa_bench.datasets.training_data"),
+    ("mewa_bench.agents.training_io", "mewa_bench.datasets.training_data"),  # an offline run's suite is its dataset's
+    ("mewa_bench.agents.imitation", "mewa_bench.datasets.meta_episodes"),  # its whole meta-episodes
 }
 
 

@@ -46,8 +46,8 @@ from typing import Any, Callable
 import numpy as np
 
 from mewa_bench.agents.lanes import LaneGenerators, pick_actions, truthy
-from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, load_for_play, restore, resumed,
-                                           save_checkpoint, settings_with, torch_module)
+from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, load_for_play, offline_settings,
+                                           restore, resumed, save_checkpoint, torch_module)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane, state_vector
 
@@ -338,15 +338,7 @@ def DPTAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = F
 
 def settings_from(values: dict[str, Any], base: Settings | None = None) -> Settings:
     """Settings with some fields replaced (names checked); the suite is the dataset's when one is named."""
-    settings = settings_with(Settings, values, base, "DPT")
-    if settings.workers:
-        raise ValueError("DPT learns from a dataset: its workers are the dataset's (--worker does not apply)")
-    if settings.dataset:
-        from mewa_bench.datasets.training_data import read_training_meta
-
-        meta = read_training_meta(settings.dataset)  # a clear error if it is not a training dataset
-        settings = settings_with(Settings, {"suite": meta["suite"]["name"]}, settings)
-    return settings
+    return offline_settings(Settings, values, base, "DPT")
 
 
 def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:

@@ -47,6 +47,7 @@ ALGORITHMS = {  # name -> module (one file per algorithm)
     "pearl": "mewa_bench.agents.pearl",
     "maml": "mewa_bench.agents.maml",
     "dpt": "mewa_bench.agents.dpt",  # offline: learns from a training dataset (train --dataset)
+    "imitation": "mewa_bench.agents.imitation",  # offline: imitates the expert tier's own actions
 }
 
 S = TypeVar("S")
@@ -84,6 +85,21 @@ def settings_with(cls: type[S], values: dict[str, Any], base: S | None = None, n
     if unknown:
         raise ValueError(f"unknown {name or cls.__name__} setting(s) {sorted(unknown)}; known: {sorted(start)}")
     return cls(**{**start, **values})
+
+
+def offline_settings(cls: type[S], values: dict[str, Any], base: S | None = None, name: str = "") -> S:
+    """An offline algorithm's settings (`settings_with`): no worker list (the dataset's workers are its own),
+    and the suite is the one the named dataset was built for (a clear error if it is not a training dataset)."""
+    settings = settings_with(cls, values, base, name)
+    if settings.workers:  # type: ignore[attr-defined]
+        raise ValueError(f"{name or cls.__name__} learns from a dataset: its workers are the dataset's (--worker does "
+                         "not apply)")
+    if settings.dataset:  # type: ignore[attr-defined]
+        from mewa_bench.datasets.training_data import read_training_meta
+
+        meta = read_training_meta(settings.dataset)  # type: ignore[attr-defined]
+        settings = settings_with(cls, {"suite": meta["suite"]["name"]}, settings, name)
+    return settings
 
 
 RUN_OPTIONS = ("suite", "seed", "total_steps", "workers", "dataset")  # set by `train` with options of their own
@@ -273,22 +289,23 @@ from {module} import {agent_class}
 PRIVILEGED = False
 
 
-def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="false"):
+def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="{greedy}"):
     return {agent_class}(checkpoint or Path(__file__).with_name("{checkpoint}"), num_lanes, seed=seed, greedy=greedy)
 '''
 
 
 def write_submission(out: Path, command: str, settings: Any, algorithm: str, title: str, agent_class: str,
-                     description: str) -> list[Path]:
+                     description: str, greedy: bool = False) -> list[Path]:
     """Make a run folder a submission: agent.py (plays CHECKPOINT with `agent_class` of the algorithm's
-    module) and a README with the exact command, the settings and where the metrics are."""
+    module, sampling its actions unless `greedy`) and a README with the exact command, the settings and where
+    the metrics are."""
     from mewa_bench.files import write_atomic
 
     agent = out / "agent.py"
     shown = os.path.relpath(out) if Path(out).resolve().is_relative_to(Path.cwd()) else str(out)  # no machine paths
     write_atomic(agent, AGENT_FILE.format(title=title, command=command, folder=shown, suite=settings.suite,
                                           module=ALGORITHMS[algorithm], agent_class=agent_class,
-                                          checkpoint=CHECKPOINT))
+                                          checkpoint=CHECKPOINT, greedy=str(greedy).lower()))
     readme = out / "README.md"
     write_atomic(readme, f"# {algorithm} ({settings.suite}, seed {settings.seed})\n\n{description}\n\nTrained with:"
                          f"\n\n```\n{command}\n```\n\nSettings: `{asdict(settings)}`. Training metrics: `{METRICS}`.\n")

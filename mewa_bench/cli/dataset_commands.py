@@ -132,6 +132,9 @@ def datasets_build(name: str = typer.Argument(..., metavar="NAME", help="A train
             (session(where) if where is not None else nullcontext()):
         result = _or_exit(lambda: build_named(name, out, frames, jobs, catalog, ray_tasks if where else None))
     e = result.entry
+    if result.spec.built_name != result.spec.name:
+        console.print(f"built {result.spec.built_name}: the first {e['frames']:,} frames' worth of {result.spec.name} "
+                      f"(frame target {result.spec.frames:,} instead of the dataset's own), under its own name")
     console.print(f"[green]ok[/green] {result.root} ({e['frames']:,} frames, {e['episodes']:,} episodes, "
                   f"{e['frames'] / result.build_seconds:,.0f} frames/s: built in {result.build_seconds:.1f} s, packed in "
                   f"{result.pack_seconds:.1f} s); sha256 {e['sha256']} in {result.catalog}")

@@ -1,6 +1,7 @@
 """`mewa-bench datasets build NAME`: build a named training dataset, pack it, record its sha256 in a catalog.
 
-The folder `<out>/<name>/` is the LeRobot dataset; `<out>/<name>-<version>.tar.gz` its deterministic
+The folder `<out>/<name>/` is the LeRobot dataset (`<name>-frames<N>` when `--frames N` differs from the
+dataset's own target: the first rounds of the full dataset, the same seeds, under a name of its own); `<out>/<name>-<version>.tar.gz` its deterministic
 archive, whose sha256 goes into the catalog (default `<out>/index.json`), from which `datasets
 download NAME --catalog <out>/index.json` or `mewa-bench serve --catalog ...` hand it out verified.
 When the shipped catalog's `builds` section records the same dataset, the new sha256 is compared
@@ -52,14 +53,14 @@ def build_named(name: str, out_dir: Path | str, frames: int | None = None, jobs:
     as `map_tasks`, e.g. `training_data.ray_tasks`)."""
     spec = training_spec(name, frames)
     out_dir = Path(out_dir)
-    root = out_dir / spec.name
+    root = out_dir / spec.built_name
     catalog_path = Path(catalog) if catalog is not None else out_dir / "index.json"
     if catalog_path.exists():
         load_catalog(catalog_path)  # a broken catalog fails before the build
     start = time.perf_counter()
     build_training_dataset(spec, root, jobs, map_tasks=map_tasks)
     built = time.perf_counter()
-    entry = pack_dataset(root, out_dir, spec.name, spec.version, spec.suite, behaviour_name(spec),
+    entry = pack_dataset(root, out_dir, spec.built_name, spec.version, spec.suite, behaviour_name(spec),
                          catalog_dir=catalog_path.parent)
     add_to_catalog(catalog_path, entry)
     packed = time.perf_counter()
@@ -72,8 +73,8 @@ def _recorded(spec: TrainingSpec) -> str | None:
         shipped = load_catalog(default_catalog_path(), resolve=False)
     except DatasetError:
         return None
-    record = recorded_build(shipped, spec.name, spec.version)
+    record = recorded_build(shipped, spec.built_name, spec.version)
     if record is not None and record.get("frames_target") == spec.frames:
         return record.get("sha256")
-    entry = next((e for e in shipped["datasets"] if (e["name"], e["version"]) == (spec.name, spec.version)), None)
+    entry = next((e for e in shipped["datasets"] if (e["name"], e["version"]) == (spec.built_name, spec.version)), None)
     return None if entry is None else entry.get("sha256")

@@ -65,8 +65,20 @@ class TrainingSpec:
     expert_agent: str = "bayes-explorer"  # the stronger adaptive reference (most of the v2 suites' gaps)
 
     @property
+    def built_name(self) -> str:
+        """The name of what is built: the registry name, with `-frames<N>` for another frame target than its own."""
+        default = TRAINING_DATASETS.get(self.name)
+        return self.name if default is None or default.frames == self.frames else f"{self.name}-frames{self.frames}"
+
+    @property
     def dataset_id(self) -> str:
         """Minari-style id with the major version: `mewa/narrow-v2-train-random-v1`."""
+        return f"mewa/{self.built_name}-v{self.version.split('.')[0]}"
+
+    @property
+    def seed_id(self) -> str:
+        """What the seeds derive from: the registry dataset's id, so that a build with a smaller frame target
+        holds the first rounds of the full one."""
         return f"mewa/{self.name}-v{self.version.split('.')[0]}"
 
     @property
@@ -135,14 +147,14 @@ def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Gen
     m, h = spec.meta_batch, spec.episodes_per_worker
     task_idx, workers = sample_training_pairs(suite.tasks, rng, m)
     meta = np.repeat(np.arange(first, first + m), h)
-    keys = training_luck_keys(spec.dataset_id, meta, np.tile(np.arange(h), m)).reshape(m, h)
+    keys = training_luck_keys(spec.seed_id, meta, np.tile(np.arange(h), m)).reshape(m, h)
     check_training_keys(keys.reshape(-1), f"{spec.name}: meta-episodes {first}..{first + m - 1}")
     groups = []
     for i in range(len(suite.tasks)):
         rows = np.flatnonzero(task_idx == i)
         if len(rows):
             check_training_workers(suite.tasks[i], workers[rows], f"{spec.name}: task {i}")
-            seeds = np.array([_seed_int(f"{spec.dataset_id}/agent/{first + r}") for r in rows], dtype=np.int64)
+            seeds = np.array([_seed_int(f"{spec.seed_id}/agent/{first + r}") for r in rows], dtype=np.int64)
             groups.append(_Group(rows, play_tier(spec.tier, suite.name, suite.tasks, i, workers[rows], keys[rows], rng,
                                                  seeds, spec.expert_agent, jobs, map_tasks)))
     return task_idx, workers, keys, groups
@@ -304,7 +316,7 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
     n = len(task_idx)
     return {
         "format": TRAINING_FORMAT, "format_version": TRAINING_FORMAT_VERSION, "kind": "training",
-        "dataset_id": spec.dataset_id, "name": spec.name, "version": spec.version,
+        "dataset_id": spec.dataset_id, "name": spec.built_name, "version": spec.version,
         "spec": asdict(spec),
         "suite": {"name": suite.name, "sha256": suite.sha256},
         "eval_env_spec": {"env_id": "mewa/MEWA-v0", "env_version": ENV_VERSION, "suite": suite.name,
@@ -319,8 +331,10 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
         "worker_distribution": {"name": "meta-train", "tasks": _distribution(suite),
                                 "task_choice": "uniform over the suite's tasks, per meta-episode"},
         "seeds": {"build_seed": spec.seed,
-                  "worker_rng": f"numpy default_rng(sha256('{spec.dataset_id}/{spec.seed}') >> 1)",
-                  "luck_keys": "sha256('mewa-bench/training-data/<dataset_id>/<meta-episode>/<episode>') >> 1"},
+                  "worker_rng": f"numpy default_rng(sha256('{spec.seed_id}/{spec.seed}') >> 1)",
+                  "luck_keys": "sha256('mewa-bench/training-data/"
+                               + ("<dataset_id>" if spec.seed_id == spec.dataset_id else spec.seed_id)
+                               + "/<meta-episode>/<episode>') >> 1"},
         "checks": {"curated_workers": f"none of the {len(ALL_SUITES)} shipped suites' curated workers; "
                                       "every worker in its task's meta-train support",
                    "nearest_curated_worker_linf": round_floats(nearest),
@@ -366,7 +380,7 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     if spec.tier not in TIERS:
         raise TrainingDataError(f"{spec.name}: unknown tier {spec.tier!r}; expected one of {', '.join(TIERS)}")
     suite = load_suite(spec.suite)
-    rng = np.random.default_rng(_seed_int(f"{spec.dataset_id}/{spec.seed}"))
+    rng = np.random.default_rng(_seed_int(f"{spec.seed_id}/{spec.seed}"))
     clock = [time.perf_counter()]
     played = []
     frames, nearest = 0, np.inf
