@@ -15,7 +15,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Callable
 
-from mewa_bench.agents.training_io import (UnknownAlgorithm, load_algorithm, setting_overrides, whole_updates,
+from mewa_bench.agents.training_io import (UnknownAlgorithm, dataset_note, load_algorithm, setting_overrides, whole_updates,
                                            workers_arg)
 from mewa_bench.design.suites import DEFAULT_SUITE
 from mewa_bench.protocol.run_info import RunInfo, run_name, write_run_info
@@ -81,7 +81,7 @@ def choose_algorithm(algo: str, settings: list[str], dataset: Path | None, absol
     offline = {} if dataset is None else {"dataset": str(dataset.resolve() if absolute_dataset else dataset)}
     chosen = Algorithm(algo, module, overrides, offline)
     if dataset is not None and not chosen.learns_offline:
-        raise TrainingOptionError(f"{algo} learns online: only offline algorithms (dpt) take a dataset", "--dataset")
+        raise TrainingOptionError(f"{algo} learns online: only offline algorithms (dpt, imitation) take a dataset", "--dataset")
     if dataset is None and chosen.learns_offline:
         raise TrainingOptionError(f"{algo.upper()} learns from a training dataset: give --dataset (a folder that "
                                   f"`mewa-bench datasets build NAME` wrote)", "--dataset")
@@ -167,8 +167,9 @@ def finish_run(plan: TrainingPlan, job: Job, paths: list[Path]) -> list[Path]:
 
     settings, folder, _, _ = job
     algo, suite = plan.algorithm.algo, plan.suite
+    notes = dataset_note(settings.dataset) if plan.algorithm.learns_offline else ""
     info = write_run_info(folder, RunInfo(algorithm=plan.name, seed=settings.seed, suite=suite,
-                                          steps=settings.total_steps,
+                                          steps=settings.total_steps, notes=notes,
                                           settings={**plan.algorithm.overrides, **plan.algorithm.offline}))
     curve = plot_training_curves({f"seed {settings.seed}": folder / plan.algorithm.module.METRICS},
                                  folder / "training_curve.png", f"{algo} on {suite}, seed {settings.seed}")

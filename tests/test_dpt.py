@@ -165,7 +165,7 @@ def test_train_dpt_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) ->
                                      seeds=(0, 1), pairs=(0, 3)))
     assert len(results["units"]) == 4
 
-    for args, message in ((["train", "rl2", "--dataset", str(data)], "only offline algorithms (dpt) take a dataset"),
+    for args, message in ((["train", "rl2", "--dataset", str(data)], "only offline algorithms (dpt, imitation) take a dataset"),
                           (["train", "dpt", "--dataset", str(data), "--suite", "wide-v2"],
                            "the dataset is of narrow-v2, not wide-v2"),
                           (["train", "dpt", "--dataset", str(tmp_path)], "cannot read the dataset's metadata"),

@@ -102,6 +102,21 @@ def offline_settings(cls: type[S], values: dict[str, Any], base: S | None = None
     return settings
 
 
+def dataset_note(dataset: str | Path) -> str:
+    """What a run's run.json says of its training dataset: its name, frames and build command, and the sha256 of its
+    archive when the catalog beside it (`datasets build` writes `<out>/index.json`) records one."""
+    import json
+
+    from mewa_bench.datasets.training_data import read_training_meta
+
+    meta = read_training_meta(dataset)
+    note = f"trained on {meta['name']} ({meta['total_steps']:,} frames; `{meta['build_command']}`)"
+    catalog = Path(dataset).parent / "index.json"
+    entries = json.loads(catalog.read_text()).get("datasets", []) if catalog.exists() else []
+    entry = next((e for e in entries if (e.get("name"), e.get("version")) == (meta["name"], meta["version"])), None)
+    return note if entry is None else f"{note}; archive sha256 {entry['sha256']}"
+
+
 RUN_OPTIONS = ("suite", "seed", "total_steps", "workers", "dataset")  # set by `train` with options of their own
 
 
