@@ -377,3 +377,27 @@ def test_a_full_size_build_gives_the_sha256_the_shipped_catalog_records(tmp_path
     result = build_named("narrow-v2-train-random", tmp_path, jobs=2)
     assert result.entry["frames"] >= 1_000_000 and result.entry["frames"] == recorded["narrow-v2-train-random"]["frames"]
     assert result.matches_record is True, (result.entry["sha256"], result.recorded_sha256)
+
+
+def test_a_build_with_another_frame_target_has_a_name_of_its_own(tmp_path):
+    """`datasets build NAME --frames N` (N not the dataset's own target) builds NAME-framesN, says so, and holds the
+    first rounds of a larger build (the same seeds)."""
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+
+    result = CliRunner().invoke(app, ["datasets", "build", "narrow-v2-train-random", "--frames", "3000", "--jobs", "1",
+                                      "--out", str(tmp_path)], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    root = tmp_path / "narrow-v2-train-random-frames3000"
+    assert "built narrow-v2-train-random-frames3000" in " ".join(result.output.split())
+    assert not (tmp_path / "narrow-v2-train-random").exists()
+    assert meta(root)["name"] == "narrow-v2-train-random-frames3000"
+    assert meta(root)["build_command"] == "mewa-bench datasets build narrow-v2-train-random --frames 3000"
+    assert [e["name"] for e in load_catalog(tmp_path / "index.json")["datasets"]] == [root.name]
+    larger = tmp_path / "larger"
+    build_training_dataset(training_spec("narrow-v2-train-random", 30_000), larger, jobs=1)  # two rounds of 64
+    small, big = frames(root), frames(larger)
+    assert len(big) > len(small)
+    for column in ("action", "luck_key", "optimal_action", "meta_episode_index"):
+        assert np.array_equal(np.stack(big[column][:len(small)]), np.stack(small[column])), column

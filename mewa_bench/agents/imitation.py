@@ -57,7 +57,7 @@ class Settings:
     dataset: str = ""  # folder of a training dataset (mewa-bench datasets build NAME)
     label: str = "action"  # what it imitates: the behaviour's actions, or optimal_action (privileged)
     batch: int = 32  # meta-episodes per update
-    hidden: int = 256
+    hidden: int = 128
     learning_rate: float = 1e-3
     weight_decay: float = 0.0
     max_grad_norm: float = 1.0
