@@ -117,3 +117,14 @@ def test_a_padded_batch_marks_its_valid_frames(built) -> None:
     assert torch.equal(next(iter(loader))["inputs"], batch["inputs"])
     with pytest.raises(ValueError, match="unit 'episode'"):
         MetaEpisodeDataset(built["expert"], unit="episode")
+
+
+def test_the_first_episodes_of_each_history(built) -> None:
+    whole = MetaEpisodeDataset(built["learning-histories"])
+    first = MetaEpisodeDataset(built["learning-histories"], episodes=3)
+    assert len(first) == 2
+    for i in range(2):
+        n = int((whole[i]["episode"] < 3).sum())
+        assert n < len(whole[i]["frame"]) and first[i]["episode"].max() == 2
+        for key in ("inputs", "frame", "action", "first"):
+            assert torch.equal(first[i][key], whole[i][key][:n]), key

@@ -9,7 +9,9 @@ the evaluation protocol.
   on what it has seen so far in the meta-episode, so a sequence model that sees the same history can
   copy it exactly, adaptation included. DPT's `optimal_action` labels are the known-worker optimum:
   privileged, so copying them from a history that does not determine the worker teaches at best to
-  guess (posterior sampling over optimal policies), never to explore on purpose.
+  guess (posterior sampling over optimal policies), never to explore on purpose. On the learning-histories
+  tier the behaviour is a posterior-sampling learner (also told nothing of the worker); its first 10
+  episodes (`episodes`) are what a pair's 10 episodes from scratch look like.
 - Inputs: per frame exactly what the recurrent agents see when they play (the observation, the previous
   action one-hot, the previous reward, the new-episode flag: `datasets.meta_episodes.lane_inputs`); the
   GRU's state starts from zero on a meta-episode's first frame and carries across its 10 episodes.
@@ -56,6 +58,7 @@ class Settings:
     total_steps: int = 40_000  # meta-episodes seen in training (STEP_UNIT)
     dataset: str = ""  # folder of a training dataset (mewa-bench datasets build NAME)
     label: str = "action"  # what it imitates: the behaviour's actions, or optimal_action (privileged)
+    episodes: int = 10  # the first episodes of each meta-episode it learns from (a learning history's 50: its first 10)
     batch: int = 32  # meta-episodes per update
     hidden: int = 128
     learning_rate: float = 1e-3
@@ -123,7 +126,7 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Any = None,
         if not settings.dataset:
             raise ValueError("imitation learns from a training dataset: give --dataset (a folder that `mewa-bench "
                              "datasets build NAME` wrote)")
-        data = MetaEpisodeDataset(settings.dataset, suite=settings.suite)
+        data = MetaEpisodeDataset(settings.dataset, suite=settings.suite, episodes=settings.episodes)
     updates = settings.total_steps // settings.steps_per_update
     rng = np.random.default_rng([settings.seed, start_update])
     for update in range(start_update, updates):

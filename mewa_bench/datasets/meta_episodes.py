@@ -8,6 +8,7 @@ sequences of frames:
 - `unit="meta-episode"`: a whole meta-episode (the expert tier's 10 episodes, a learning history's 50);
   `unit="block"`: one 10-episode block (a learning history is 5 of them), a fresh sequence as the
   protocol starts a pair afresh.
+- `episodes=N`: only the first N episodes of each sequence.
 - `window=N`: fixed-length context windows of N frames instead, every `stride` frames of each sequence
   (the last window of a sequence may be shorter; `pad_batch` pads and marks `valid`).
 
@@ -93,6 +94,17 @@ def frames_in_sequences(frame: np.ndarray, observation: np.ndarray, action: np.n
                           np.asarray(optimal_action, dtype=np.int64), np.asarray(episode, dtype=np.int64), starts)
 
 
+def first_episodes(data: SequenceFrames, episodes: int) -> SequenceFrames:
+    """Each sequence cut to its first `episodes` episodes (the protocol plays 10 from scratch; a learning history's
+    later episodes follow more experience than a pair gives)."""
+    if episodes < 1:
+        raise ValueError(f"episodes {episodes}: at least 1")
+    keep = data.episode < episodes
+    sequence = np.repeat(np.arange(len(data)), data.lengths())[keep]
+    return frames_in_sequences(data.frame[keep], data.observation[keep], data.action[keep], data.reward[keep],
+                               data.optimal_action[keep], sequence, data.episode[keep])
+
+
 def _column(table: Any, name: str) -> np.ndarray:
     """A parquet column as a flat numpy array (list columns flattened)."""
     column = table.column(name).combine_chunks()
@@ -120,8 +132,10 @@ class MetaEpisodeDataset:
     """A map-style torch dataset of whole sequences (meta-episodes or blocks) or of fixed-length windows of them."""
 
     def __init__(self, source: Path | str | SequenceFrames, unit: str = "meta-episode", window: int | None = None,
-                 stride: int | None = None, suite: str | None = None) -> None:
+                 stride: int | None = None, suite: str | None = None, episodes: int | None = None) -> None:
         self.data = source if isinstance(source, SequenceFrames) else read_sequences(source, unit, suite)
+        if episodes is not None:
+            self.data = first_episodes(self.data, episodes)
         previous_action, previous_reward, new_episode, first = previous_transition(self.data)
         self.columns = {"inputs": lane_inputs(self.data), "observation": self.data.observation,
                         "previous_action": previous_action, "previous_reward": previous_reward,
