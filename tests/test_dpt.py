@@ -157,7 +157,8 @@ def test_train_dpt_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) ->
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
     assert "training 32 meta-episodes per run (2 updates of 16; --steps 20 rounded up" in text
-    assert "predictions of the dataset's optimal actions (not a score" in text and "episode 1 -> 10" not in text
+    assert "predictions of the dataset's labels (dpt: the optimal actions; imitation: the behaviour's) (not a score" \
+        in text and "episode 1 -> 10" not in text
     info = json.loads((out / "run.json").read_text())
     assert (info["algorithm"], info["suite"], info["steps"]) == ("dpt", "narrow-v2", 32)
     assert f"--dataset {data}" in (out / "README.md").read_text()
@@ -165,7 +166,8 @@ def test_train_dpt_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) ->
                                      seeds=(0, 1), pairs=(0, 3)))
     assert len(results["units"]) == 4
 
-    for args, message in ((["train", "rl2", "--dataset", str(data)], "only offline algorithms (dpt, imitation) take a dataset"),
+    for args, message in ((["train", "rl2", "--dataset", str(data)],
+                           "only offline algorithms (dpt, imitation) take a dataset"),
                           (["train", "dpt", "--dataset", str(data), "--suite", "wide-v2"],
                            "the dataset is of narrow-v2, not wide-v2"),
                           (["train", "dpt", "--dataset", str(tmp_path)], "cannot read the dataset's metadata"),

@@ -177,7 +177,8 @@ def write_submission(out: Path, command: str, settings: Settings) -> list[Path]:
     """Make the run folder a submission: agent.py (plays checkpoint.pt) and a README with the command."""
     return write_submission_files(out, command, settings, "imitation", "Imitation", "ImitationVectorAgent",
                                   "Imitation (a GRU over whole meta-episodes trained offline to copy a training "
-                                  f"dataset's `{settings.label}` labels; `mewa_bench/agents/imitation.py`).", settings.greedy)
+                                  f"dataset's `{settings.label}` labels; `mewa_bench/agents/imitation.py`).",
+                                  settings.greedy)
 
 
 def train_run(settings: Settings, folder: Path, resume: bool, command: str,

@@ -71,7 +71,7 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
 
                 def show(done: int, total: int, row: dict, task=task, s=settings.seed) -> None:
                     bar.update(task, completed=done, total=total, description=(
-                        f"{algo} seed {s}: loss {row['loss']:.3f}, optimal-action accuracy {row['accuracy']:.2f}"
+                        f"{algo} seed {s}: loss {row['loss']:.3f}, label accuracy {row['accuracy']:.2f}"
                         if "accuracy" in row else f"{algo} seed {s} meta-train: "
                         f"{row['episode_1_normalised_return']:.2f} -> {row['episode_10_normalised_return']:.2f}"))
 
@@ -83,7 +83,8 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
             console.print(f"wrote {path}")
 
 
-OFFLINE_PROGRESS_TEXT = ("progress: the loss and accuracy of its predictions of the dataset's optimal actions (not a "
+OFFLINE_PROGRESS_TEXT = ("progress: the loss and accuracy of its predictions of the dataset's labels (dpt: the optimal "
+                         "actions; imitation: the behaviour's) (not a "
                          "score: `evaluate` plays the suite's curated test workers, which the dataset never holds)")
 TRAIN_PROGRESS_TEXT = ("progress: meta-train normalised return, episode 1 -> 10 of a pair (not a score: `evaluate` "
                        "scores the suite's curated test workers, which training never meets; see the README)")
