@@ -126,7 +126,7 @@ def results_section(folder: Path) -> str | None:
                     f"{s['curve'][-1]['mean']:.3f} | {ci(s['adaptability'], '+.4f')} | "
                     f"{ci(s['comparisons']['best_fixed']['difference'], '+.4f')} | {len(d['seeds'])} |")
     offline = "dataset" in json.loads((folder / "run.json").read_text()).get("settings", {})
-    curve = ("`metrics.csv` (the loss and accuracy of the optimal-action predictions)" if offline
+    curve = ("`metrics.csv` (the loss and accuracy of its predictions of the dataset's labels)" if offline
              else "`training_curve.png` (meta-train episode-1 and episode-10 normalised returns)")
     return (f"{RESULTS_HEADING}; `{files[0].name}`)\n\n"
             "| suite | mean score | s_1 | s_10 | adaptability | vs best fixed | seeds |\n"

@@ -124,7 +124,7 @@ def test_train_one_seed_per_ray_task_gives_the_local_runs(tmp_path: Path) -> Non
     from mewa_bench.cli import app
 
     for where, extra in (("ray", ["--ray"]), ("local", [])):
-        result = CliRunner().invoke(app, ["train", "rl2", "--steps", "8192", "--seed", "1", "--seed", "2",
+        result = CliRunner().invoke(app, ["train", "rl2", "--suite", "narrow-v1", "--steps", "8192", "--seed", "1", "--seed", "2",
                                           "--worker", "0,1,1,1", "--out", str(tmp_path / where), *extra])
         assert result.exit_code == 0, result.output
     for seed in (1, 2):

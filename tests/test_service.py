@@ -50,7 +50,7 @@ def token(server) -> str:
 def evaluated(tmp_path_factory) -> tuple[dict, bytes]:
     """A results file written by `mewa-bench evaluate` (the random agent, narrow-v1, seeds 0 and 1)."""
     out = tmp_path_factory.mktemp("evaluated") / "random-narrow-v1.json"
-    subprocess.run([*CLI, "evaluate", str(RANDOM_AGENT), "--seeds", "2",
+    subprocess.run([*CLI, "evaluate", str(RANDOM_AGENT), "--suite", "narrow-v1", "--seeds", "2",
                     "--out", str(out)], check=True, capture_output=True, timeout=300)
     return read_results(out), out.read_bytes()  # the file is schema 3: its units as columns
 

@@ -224,7 +224,7 @@ def test_the_train_command_makes_a_submission_folder(tmp_path: Path) -> None:
     from mewa_bench.cli import app
 
     out = tmp_path / "varibad-run"
-    result = CliRunner().invoke(app, ["train", "varibad", "--steps", "16384", "--out", str(out),
+    result = CliRunner().invoke(app, ["train", "varibad", "--suite", "narrow-v1", "--steps", "16384", "--out", str(out),
                                       "--worker", "0,1,1,1", "--worker", "1,1,1,0", "--rerun"])
     assert result.exit_code == 0, result.output
     assert {p.name for p in out.iterdir()} >= {"agent.py", "README.md", CHECKPOINT, METRICS, "training_curve.png",
