@@ -15,15 +15,15 @@ from mewa_bench.datasets import build_training_dataset, training_spec
 from mewa_bench.design.suites import load_suite
 
 pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
-DATASET_ID = "mewa/narrow-v2-train-random-task-specific-v1"
+SPEC = replace(training_spec("narrow-v2-train-random-task-specific", 300), meta_batch=2)  # two meta-episodes of ten
+DATASET_ID = SPEC.dataset_id  # a 300-frame build is its own dataset: mewa/narrow-v2-train-random-task-specific-frames300-v1
 
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory) -> tuple[Path, Path]:
     """A tiny training dataset (two meta-episodes of ten episodes) and its Minari export, made by the CLI."""
     root = tmp_path_factory.mktemp("minari")
-    spec = replace(training_spec("narrow-v2-train-random-task-specific", 300), meta_batch=2)
-    build_training_dataset(spec, root / "source", jobs=1)
+    build_training_dataset(SPEC, root / "source", jobs=1)
     result = CliRunner().invoke(app, ["datasets", "export", str(root / "source"), "--format", "minari",
                                       "--out", str(root / "minari")])
     assert result.exit_code == 0, result.output
