@@ -288,3 +288,22 @@ def table_rows(server: Server, table: str) -> list[dict[str, Any]]:
             return [dict(r._mapping) for r in connection.execute(text(f"SELECT * FROM {table} ORDER BY id"))]
     finally:
         engine.dispose()
+
+
+PACED_AGENT = '''"""Random play, reseeded per unit, sleeping `delay` seconds per act: a run long enough to interrupt or to stop the database under."""
+import time
+
+import numpy as np
+
+
+class Agent:
+    def __init__(self, observation_space, action_space, delay="0"):
+        self.delay, self.rng = float(delay), np.random.default_rng(0)
+
+    def reset_task(self, seed=None):
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, observation):
+        time.sleep(self.delay)
+        return int(self.rng.integers(0, 4))
+'''

@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-from service_harness import (CLI, RANDOM_AGENT, Server, get, post_agent, post_results, postgres,  # noqa: F401
+from service_harness import (CLI, PACED_AGENT, RANDOM_AGENT, Server, get, post_agent, post_results, postgres,  # noqa: F401
                              require_sandbox, small_filesystem, table_rows, wait_status)
 
 from mewa_bench.protocol.config import EvalConfig
@@ -223,25 +223,6 @@ def _children(pid: int) -> set[int]:
     return {int(p) for p in found}
 
 
-PACED = '''"""Random play sleeping `delay` seconds per act: a run long enough to stop the database under it."""
-import time
-
-import numpy as np
-
-
-class Agent:
-    def __init__(self, observation_space, action_space, delay="0"):
-        self.delay, self.rng = float(delay), np.random.default_rng(0)
-
-    def reset_task(self, seed=None):
-        self.rng = np.random.default_rng(seed)
-
-    def act(self, observation):
-        time.sleep(self.delay)
-        return int(self.rng.integers(0, 4))
-'''
-
-
 def test_a_database_outage_mid_job_costs_no_attempt_and_no_worker(tmp_path, postgres) -> None:  # noqa: F811
     require_sandbox()
     if postgres is None:
@@ -251,7 +232,7 @@ def test_a_database_outage_mid_job_costs_no_attempt_and_no_worker(tmp_path, post
     try:
         token = server.token("hal")
         agent = tmp_path / "paced.py"
-        agent.write_text(PACED)
+        agent.write_text(PACED_AGENT)
         answer = post_agent(server, token, agent, name="paced", agent_args={"delay": "0.001"})
         assert answer.status_code == 202, answer.text
         submission = answer.json()["id"]

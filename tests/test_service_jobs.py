@@ -20,7 +20,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from service_harness import (AGENTS, BACKENDS, CLI, RANDOM_AGENT, Server, database_url, get, post_agent,
+from service_harness import (AGENTS, BACKENDS, CLI, PACED_AGENT, RANDOM_AGENT, Server, database_url, get, post_agent,
                              post_results, postgres, require_sandbox, table_rows, wait_status)
 
 from mewa_bench.files import json_text
@@ -32,23 +32,6 @@ pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
 HIDDEN = "narrow-v1-hidden"
 PACED_ARGS = {"delay": "0.0005"}
-PACED_AGENT = '''"""Random play, reseeded per unit, sleeping `delay` seconds per act: a run long enough to interrupt."""
-import time
-
-import numpy as np
-
-
-class Agent:
-    def __init__(self, observation_space, action_space, delay="0"):
-        self.delay, self.rng = float(delay), np.random.default_rng(0)
-
-    def reset_task(self, seed=None):
-        self.rng = np.random.default_rng(seed)
-
-    def act(self, observation):
-        time.sleep(self.delay)
-        return int(self.rng.integers(0, 4))
-'''
 
 
 @pytest.fixture(scope="session")
