@@ -39,15 +39,15 @@ a state its own play keeps returning to), so it samples. Runs on the shipped sui
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from mewa_bench.agents.lanes import LaneGenerators, pick_actions, truthy
-from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, load_for_play, offline_settings,
-                                           restore, resumed, save_checkpoint, torch_module)
+from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, fit_labels, load_for_play, offline_settings,
+                                           restore, resumed, torch_module)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane, state_vector
 
@@ -247,21 +247,7 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Sequences |
         begin = np.maximum(0, end + 1 - 2 * settings.context)
         tokens, episode, label, valid = _batch(torch, data, data.starts[chosen] + begin, end + 1 - begin)
         logits = model(tokens, episode, valid)
-        loss = torch.nn.functional.cross_entropy(logits[valid], label[valid])
-        optimizer.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), settings.max_grad_norm)
-        optimizer.step()
-        accuracy = (logits[valid].argmax(dim=-1) == label[valid]).float().mean()
-        steps = (update + 1) * settings.steps_per_update
-        row = {"update": update + 1, "env_steps": steps, "seconds": round(time.perf_counter() - began, 3),
-               "episode_1_normalised_return": float("nan"), "episode_10_normalised_return": float("nan"),
-               "loss": round(loss.item(), 6), "accuracy": round(accuracy.item(), 6)}
-        append_metrics(out / METRICS, row)
-        progress(steps, updates * settings.steps_per_update, row)
-        if (update + 1) % settings.checkpoint_every == 0 or update + 1 == updates:
-            save_checkpoint(out / CHECKPOINT, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                                               "settings": asdict(settings), "update": update + 1})
+        fit_labels(model, optimizer, logits, label, valid, settings, update, updates, began, out, progress)
     return out / CHECKPOINT
 
 

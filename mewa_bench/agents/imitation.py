@@ -30,15 +30,15 @@ the two, its tenth both). Runs on the shipped suites: docs/baselines.md.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from mewa_bench.agents.lanes import RecurrentLanes, truthy
-from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, load_for_play, offline_settings,
-                                           restore, resumed, save_checkpoint, torch_module)
+from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, fit_labels, load_for_play, offline_settings,
+                                           restore, resumed, torch_module)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane
 
@@ -136,21 +136,7 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Any = None,
         batch = pad_batch([data[int(i)] for i in chosen])
         valid, label = batch["valid"], batch[settings.label]
         logits = policy(batch["inputs"])
-        loss = torch.nn.functional.cross_entropy(logits[valid], label[valid])
-        optimizer.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), settings.max_grad_norm)
-        optimizer.step()
-        accuracy = (logits[valid].argmax(dim=-1) == label[valid]).float().mean()
-        steps = (update + 1) * settings.steps_per_update
-        row = {"update": update + 1, "env_steps": steps, "seconds": round(time.perf_counter() - began, 3),
-               "episode_1_normalised_return": float("nan"), "episode_10_normalised_return": float("nan"),
-               "loss": round(loss.item(), 6), "accuracy": round(accuracy.item(), 6)}
-        append_metrics(out / METRICS, row)
-        progress(steps, updates * settings.steps_per_update, row)
-        if (update + 1) % settings.checkpoint_every == 0 or update + 1 == updates:
-            save_checkpoint(out / CHECKPOINT, {"model": policy.state_dict(), "optimizer": optimizer.state_dict(),
-                                               "settings": asdict(settings), "update": update + 1})
+        fit_labels(policy, optimizer, logits, label, valid, settings, update, updates, began, out, progress)
     return out / CHECKPOINT
 
 

@@ -211,6 +211,32 @@ def append_metrics(path: Path, row: dict[str, Any]) -> None:
         writer.writerow(row)
 
 
+
+def fit_labels(model: Any, optimizer: Any, logits: Any, label: Any, valid: Any, settings: Any, update: int,
+               updates: int, began: float, out: Path, progress: Any) -> None:
+    """One supervised update of an offline algorithm (cross-entropy on the valid frames' labels, clipped
+    gradients), its metrics row and, on schedule, its checkpoint: `update` counts from 0, `began` is the
+    run's perf_counter start."""
+    import time
+
+    torch = torch_module("offline training")
+    loss = torch.nn.functional.cross_entropy(logits[valid], label[valid])
+    optimizer.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), settings.max_grad_norm)
+    optimizer.step()
+    accuracy = (logits[valid].argmax(dim=-1) == label[valid]).float().mean()
+    steps = (update + 1) * settings.steps_per_update
+    row = {"update": update + 1, "env_steps": steps, "seconds": round(time.perf_counter() - began, 3),
+           "episode_1_normalised_return": float("nan"), "episode_10_normalised_return": float("nan"),
+           "loss": round(loss.item(), 6), "accuracy": round(accuracy.item(), 6)}
+    append_metrics(out / METRICS, row)
+    progress(steps, updates * settings.steps_per_update, row)
+    if (update + 1) % settings.checkpoint_every == 0 or update + 1 == updates:
+        save_checkpoint(out / CHECKPOINT, {"model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                                           "settings": asdict(settings), "update": update + 1})
+
+
 def keep_metrics_until(path: Path, update: int) -> None:
     """Drop the metrics rows of updates after `update` (atomically): a resumed run redoes them."""
     from mewa_bench.files import write_atomic
