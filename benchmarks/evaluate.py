@@ -13,9 +13,10 @@ lane and step), isolated, default lanes, on narrow-v2. Targets: batched >= 20x t
 steps/s, and >= 50,000 agent steps/s with --jobs 2. Its last line (alone: `--parts`) times the parts no
 runner can avoid and the ratio they allow.
 `--learned`: a ranked wide-v2 run (96 seeds, 7,680 units) of each shipped learned baseline with
---jobs 2, against the random agent's in the same run. Target: each within 3 minutes.
+--jobs 2, against the random agent's in the same run. Targets: each within 3 minutes, and the transformer
+agents' (DPT, AD) within 3x the random agent's.
 
-    .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes] [--neural] [--learned] [--parts]
+    .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes] [--neural] [--learned [--only A,B]] [--parts]
 """
 
 from __future__ import annotations
@@ -86,6 +87,8 @@ def main() -> None:
     parser.add_argument("--bayes", action="store_true", help="also time bayes-adaptive with the default protocol")
     parser.add_argument("--neural", action="store_true", help="also time a torch GRU agent, one-lane vs batched")
     parser.add_argument("--learned", action="store_true", help="also time ranked wide-v2 runs of the learned baselines")
+    parser.add_argument("--only", default="", help="with --learned: a comma-separated subset of its agents (the "
+                                                   "random agent, the baseline, always runs first)")
     parser.add_argument("--parts", action="store_true", help="only the --neural section's last line: the GRU's act() "
                                                                "one-lane and batched, the env's step, and their ceiling")
     args = parser.parse_args()
@@ -96,7 +99,7 @@ def main() -> None:
     if args.neural:
         neural(seeds=tuple(range(min(args.seeds, 64))))
     if args.learned:
-        learned()
+        learned([name for name in args.only.split(",") if name])
     if args.neural or args.learned:
         return
     seeds = tuple(range(args.seeds))
@@ -196,16 +199,23 @@ def parts(batched: Path, one_lane: Path, lanes: int = 64) -> None:
           f"else would reach {(one_act + env_step) / (batched_act + env_step):.1f}x")
 
 
-def learned() -> None:
+LEARNED = ("rl2-wide-v2-seed1", "varibad-wide-v2-seed1", "pearl-wide-v2-seed1", "maml-wide-v2-seed1",
+           "dpt-wide-v2-seed1", "imitation-wide-v2-seed1", "ad-wide-v2-seed1")
+
+
+def learned(only: list[str]) -> None:
     """Ranked wide-v2 runs (default seeds) with --jobs 2: random, then each learned baseline's wide-v2 run."""
+    unknown = sorted(set(only) - set(LEARNED))
+    if unknown:
+        raise SystemExit(f"--only: {', '.join(unknown)} not among {', '.join(LEARNED)}")
     seeds = default_seeds("wide-v2")
     print(f"wide-v2, {len(seeds)} seeds (ranked run), --jobs 2")
     print(f"{'agent':<28} {'play s':>7} {'scoring s':>9} {'total s':>8} {'x random':>9}")
     base = None
-    for name in ("random", "rl2-wide-v2-seed1", "varibad-wide-v2-seed1", "pearl-wide-v2-seed1", "maml-wide-v2-seed1"):
+    for name in ("random", *(only or LEARNED)):
         total, scoring, _ = timed(REPO / "submissions" / name / "agent.py", seeds, suite="wide-v2", jobs=2)
         base = base or total
-        print(f"{name:<28} {total - scoring:>7.1f} {scoring:>9.1f} {total:>8.1f} {total / base:>9.2f}")
+        print(f"{name:<28} {total - scoring:>7.1f} {scoring:>9.1f} {total:>8.1f} {total / base:>9.2f}", flush=True)
 
 
 if __name__ == "__main__":

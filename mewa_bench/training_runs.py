@@ -20,7 +20,7 @@ from mewa_bench.agents.training_io import (UnknownAlgorithm, dataset_note, load_
 from mewa_bench.design.suites import DEFAULT_SUITE
 from mewa_bench.protocol.run_info import RunInfo, run_name, write_run_info
 
-Job = tuple[Any, Path, bool, str]  # (settings, run folder, resume, command): what an algorithm's train_job takes
+Job = tuple[Any, Path, bool, str]  # (settings, run folder, resume, command): an algorithm's train_run arguments
 SeedProgress = Callable[[int, int, dict], None]  # (steps done, total, metrics row) as a run goes
 
 
@@ -81,7 +81,7 @@ def choose_algorithm(algo: str, settings: list[str], dataset: Path | None, absol
     offline = {} if dataset is None else {"dataset": str(dataset.resolve() if absolute_dataset else dataset)}
     chosen = Algorithm(algo, module, overrides, offline)
     if dataset is not None and not chosen.learns_offline:
-        raise TrainingOptionError(f"{algo} learns online: only offline algorithms (dpt, imitation) take a dataset", "--dataset")
+        raise TrainingOptionError(f"{algo} learns online: only offline algorithms (dpt, imitation, ad) take a dataset", "--dataset")
     if dataset is None and chosen.learns_offline:
         raise TrainingOptionError(f"{algo.upper()} learns from a training dataset: give --dataset (a folder that "
                                   f"`mewa-bench datasets build NAME` wrote)", "--dataset")
@@ -143,6 +143,11 @@ def train_here(plan: TrainingPlan, rerun: bool, seed_started: Callable[[Any], Se
     return written
 
 
+def run_job(job: Job, algo: str) -> list[Path]:
+    """One seed's run of algorithm `algo` (its registry name): `train_run(*job)`, a unit of work for a Ray task."""
+    return load_algorithm(algo).train_run(*job)
+
+
 def train_on_ray(plan: TrainingPlan, address: str, rerun: bool, seed_done: Callable[[], None]) -> list[list[Path]]:
     """Train the plan's seeds as one Ray task each on the Ray instance at `address`; the files each wrote.
 
@@ -153,7 +158,7 @@ def train_on_ray(plan: TrainingPlan, address: str, rerun: bool, seed_done: Calla
 
     algo, suite = plan.algorithm.algo, plan.suite
     with session(address):
-        written = ray_map(plan.algorithm.module.train_job, plan.jobs, on_done=lambda _: seed_done())
+        written = ray_map(run_job, plan.jobs, plan.algorithm.algo, on_done=lambda _: seed_done())
     for (settings, folder, _, _), paths in zip(plan.jobs, written) if rerun else ():
         scalars = _training_scalars(folder, f"{algo} on {suite}, seed {settings.seed}", True)
         scalars.close()

@@ -19,7 +19,9 @@ from mewa_bench.cli import app
 def test_steps_round_up_to_whole_updates(algo: str, asked: int) -> None:
     settings = load_algorithm(algo).settings_from({"total_steps": asked})
     per = settings.steps_per_update
-    if algo not in ("dpt", "imitation"):  # online: env steps of every env per update; offline: meta-episodes
+    if "dataset" in vars(settings):  # offline: meta-episodes or windows per update
+        assert per == settings.batch
+    else:  # online: env steps of every env per update
         assert per == settings.num_envs * settings.num_steps
     rounded = whole_updates(settings)
     assert rounded.total_steps == math.ceil(asked / per) * per

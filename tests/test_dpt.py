@@ -13,6 +13,7 @@ import pytest
 pytest.importorskip("torch")
 
 from mewa_bench.agents import dpt  # noqa: E402
+from mewa_bench.agents.causal_transformer import OBS_SCALE, TOKEN, LaneCache  # noqa: E402
 from mewa_bench.design.suites import load_suite  # noqa: E402
 
 TWO_WORKERS = np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 0.0]])
@@ -26,8 +27,8 @@ def test_a_token_holds_the_previous_transition_and_the_episode_boundaries() -> N
                                      episode=np.array([0, 0, 1, 0, 0]))
     assert seqs.starts.tolist() == [0, 3, 5] and len(seqs) == 2
     t = seqs.tokens
-    np.testing.assert_allclose(t[:, :18] * dpt.OBS_SCALE, obs)
-    np.testing.assert_allclose(t[[1, 2, 4], 18:36] * dpt.OBS_SCALE, obs[[0, 1, 3]])  # the previous frame's
+    np.testing.assert_allclose(t[:, :18] * OBS_SCALE, obs)
+    np.testing.assert_allclose(t[[1, 2, 4], 18:36] * OBS_SCALE, obs[[0, 1, 3]])  # the previous frame's
     assert not t[[0, 3], 18:42].any()  # a meta-episode's first token has no previous transition
     assert t[1, 36 + 1] == 1 and t[2, 36 + 2] == 1 and t[4, 36 + 0] == 1 and t[1, 36:40].sum() == 1
     assert t[:, 40].tolist() == pytest.approx([0.0, -0.5, -1.0, 0.0, -0.1])
@@ -43,18 +44,15 @@ def test_playing_with_the_kv_cache_gives_the_full_passs_logits() -> None:
     model = dpt.make_model(settings).double().eval()
     rng = np.random.default_rng(0)
     length = 40
-    tokens = torch.as_tensor(rng.normal(size=(2, length, dpt.TOKEN)))
+    tokens = torch.as_tensor(rng.normal(size=(2, length, TOKEN)))
     episode = torch.as_tensor(rng.integers(0, 10, size=(2, length)))
     with torch.no_grad():
         full = model(tokens, episode, torch.ones(2, length, dtype=torch.bool))
-        shape = (3, settings.heads, settings.context, settings.d_model // settings.heads)
-        cache = [(torch.zeros(shape, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64))
-                 for _ in range(settings.layers)]
-        lanes = torch.tensor([0, 2])  # lanes 0 and 2 of 3; lane 1 stays empty
-        stepped = torch.stack([model.step(tokens[:, t], episode[:, t], cache, lanes, torch.tensor([t, t]))
-                               for t in range(length)], dim=1)
-    torch.testing.assert_close(stepped, full, rtol=0, atol=1e-12)
-    assert not cache[0][0][1].any()
+        for lanes, empty in ((np.array([0, 2]), 1), (np.array([1, 2]), 0)):  # an index, then a slice of the cache
+            cache = LaneCache(settings.layers, 3, settings.heads, settings.context, settings.d_model // settings.heads)
+            stepped = torch.stack([model.step(tokens[:, t], episode[:, t], cache, lanes) for t in range(length)], dim=1)
+            torch.testing.assert_close(stepped, full, rtol=0, atol=1e-12)
+            assert not cache.layers[0][0][empty].any() and cache.lengths.tolist().count(length) == 2
 
 
 def test_the_ring_buffer_plays_what_the_sliding_window_trains() -> None:
@@ -65,14 +63,11 @@ def test_the_ring_buffer_plays_what_the_sliding_window_trains() -> None:
     settings = dpt.Settings(context=8, layers=2)
     torch.manual_seed(1)
     model = dpt.make_model(settings).double().eval()
-    tokens = torch.as_tensor(np.random.default_rng(1).normal(size=(1, 30, dpt.TOKEN)))
+    tokens = torch.as_tensor(np.random.default_rng(1).normal(size=(1, 30, TOKEN)))
     episode = torch.as_tensor(np.repeat(np.arange(3), 10))[None]
     with torch.no_grad():
-        shape = (1, settings.heads, settings.context, settings.d_model // settings.heads)
-        cache = [(torch.zeros(shape, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64))
-                 for _ in range(settings.layers)]
-        stepped = torch.stack([model.step(tokens[:, t], episode[:, t], cache, torch.tensor([0]), torch.tensor([t]))
-                               for t in range(30)], dim=1)
+        cache = LaneCache(settings.layers, 1, settings.heads, settings.context, settings.d_model // settings.heads)
+        stepped = torch.stack([model.step(tokens[:, t], episode[:, t], cache, np.array([0])) for t in range(30)], dim=1)
         full = model(tokens, episode, torch.ones(1, 30, dtype=torch.bool))
         unlimited = dpt.make_model(dpt.Settings(context=64, layers=2)).double().eval()
         unlimited.load_state_dict(model.state_dict())
@@ -157,7 +152,7 @@ def test_train_dpt_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) ->
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
     assert "training 32 meta-episodes per run (2 updates of 16; --steps 20 rounded up" in text
-    assert "predictions of the dataset's labels (dpt: the optimal actions; imitation: the behaviour's) (not a score" \
+    assert "predictions of the dataset's labels (dpt: the optimal actions; imitation, ad: the behaviour's) (not a score" \
         in text and "episode 1 -> 10" not in text
     info = json.loads((out / "run.json").read_text())
     assert (info["algorithm"], info["suite"], info["steps"]) == ("dpt", "narrow-v2", 32)
@@ -167,7 +162,7 @@ def test_train_dpt_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) ->
     assert len(results["units"]) == 4
 
     for args, message in ((["train", "rl2", "--dataset", str(data)],
-                           "only offline algorithms (dpt, imitation) take a dataset"),
+                           "only offline algorithms (dpt, imitation, ad) take a dataset"),
                           (["train", "dpt", "--dataset", str(data), "--suite", "wide-v2"],
                            "the dataset is of narrow-v2, not wide-v2"),
                           (["train", "dpt", "--dataset", str(tmp_path)], "cannot read the dataset's metadata"),

@@ -13,9 +13,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from mewa_bench.agents import imitation  # noqa: E402
-from mewa_bench.design.suites import load_suite  # noqa: E402
-
-TWO_WORKERS = np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 0.0]])
+from two_worker_task import assert_adapts_and_beats_the_best_fixed_policy, judge, learner_histories  # noqa: E402
 pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
 
 
@@ -37,38 +35,11 @@ def test_step_by_step_play_gives_the_full_passs_logits() -> None:
 
 
 def two_worker_histories(histories: int, seed: int):
-    """Posterior-sampling learners (the learning-histories tier's behaviour) playing 10 episodes on each of the two
-    opposite workers: an adaptive behaviour that, like the expert tier's, does not know the worker."""
-    from mewa_bench.datasets.learning_histories import play_histories
-    from mewa_bench.datasets.meta_episodes import MetaEpisodeDataset, frames_in_sequences
-    from mewa_bench.game.table import transition_table
+    """Posterior-sampling learners' 10 episodes on each of the two opposite workers, as a `MetaEpisodeDataset`: an
+    adaptive behaviour that, like the expert tier's, does not know the worker."""
+    from mewa_bench.datasets.meta_episodes import MetaEpisodeDataset
 
-    task = load_suite("narrow-v1").tasks[0]
-    rng = np.random.default_rng(seed)
-    workers = TWO_WORKERS[np.arange(histories) % 2]
-    keys = rng.integers(0, 1 << 62, size=(histories, 10), dtype=np.uint64)
-    played, _ = play_histories(task, workers, keys, rng)
-    frames = frames_in_sequences(np.arange(len(played.t)), transition_table(task).obs[played.state], played.action,
-                                 played.reward, np.zeros(len(played.t)), played.episode // 10, played.episode % 10)
-    return MetaEpisodeDataset(frames)
-
-
-def judge(checkpoint: Path, seeds: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Per seed the adaptability (s_10 - s_1) and the mean score over the 10 episodes (both means over the two workers,
-    on the max-expected scale) of the checkpoint played greedily under the protocol's loop, and the best fixed
-    t-optimal policy's mean score."""
-    from test_rl2 import play_pairs
-
-    from mewa_bench.design.exact import expected_returns
-    from mewa_bench.design.policies import toptimal_family
-
-    task = load_suite("narrow-v1").tasks[0]
-    values = expected_returns(task, toptimal_family(task.N), TWO_WORKERS)  # [P, W]
-    best = values.max(axis=0)
-    agent = lambda checkpoint, seed: imitation.ImitationAgent(checkpoint, seed, greedy=True)  # noqa: E731
-    returns = play_pairs(checkpoint, task, [tuple(w) for w in TWO_WORKERS], seeds=seeds, agent=agent)
-    scores = (returns / best[:, None, None]).mean(axis=0)  # [seed, episode]
-    return scores[:, -1] - scores[:, 0], scores.mean(axis=1), float((values / best).mean(axis=1).max())
+    return MetaEpisodeDataset(learner_histories(histories, 10, seed))
 
 
 def test_imitation_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_path: Path) -> None:
@@ -78,11 +49,8 @@ def test_imitation_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_p
     worker of the two and its tenth perfect on both. Untrained (one update): +0.00 exactly, and it fails)."""
     settings = imitation.Settings(suite="narrow-v1", total_steps=300 * 16, batch=16, hidden=64, checkpoint_every=10_000)
     checkpoint = imitation.train(settings, tmp_path / "run", data=two_worker_histories(256, 0))
-    adaptability, score, best_fixed = judge(checkpoint, seeds=40)
-    half = 1.96 * adaptability.std(ddof=1) / np.sqrt(len(adaptability))
-    assert adaptability.mean() - half > 0, (adaptability.mean(), half)
-    gain = score - best_fixed
-    assert gain.mean() - 1.96 * gain.std(ddof=1) / np.sqrt(len(gain)) > 0, gain.mean()
+    greedy = lambda checkpoint, seed: imitation.ImitationAgent(checkpoint, seed, greedy=True)  # noqa: E731
+    assert_adapts_and_beats_the_best_fixed_policy(*judge(checkpoint, 40, greedy))
 
 
 def test_train_imitation_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) -> None:

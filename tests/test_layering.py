@@ -19,6 +19,7 @@ ALLOWED = {
     ("mewa_bench.agents.dpt", "mewa_bench.datasets.training_data"),
     ("mewa_bench.agents.training_io", "mewa_bench.datasets.training_data"),  # an offline run's suite is its dataset's
     ("mewa_bench.agents.imitation", "mewa_bench.datasets.meta_episodes"),  # its whole meta-episodes
+    ("mewa_bench.agents.ad", "mewa_bench.datasets.meta_episodes"),  # its learning histories, whole
 }
 
 

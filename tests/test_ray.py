@@ -105,14 +105,15 @@ def test_record_on_ray_writes_the_same_dataset(tmp_path: Path) -> None:
         assert (tmp_path / "ray" / "ds" / name).read_bytes() == (tmp_path / "local" / "ds" / name).read_bytes(), name
 
 
-def test_generate_wide_on_ray_reproduces_the_shipped_suite() -> None:
+@pytest.mark.parametrize("kind", ["narrow", pytest.param("wide", marks=pytest.mark.slow)])  # wide: about 100 s
+def test_generate_on_ray_reproduces_the_shipped_suite(kind: str) -> None:
     from typer.testing import CliRunner
 
     from mewa_bench.cli import app
 
-    result = CliRunner().invoke(app, ["generate", "wide", "--check", "--ray"])
+    result = CliRunner().invoke(app, ["generate", kind, "--check", "--ray"])
     assert result.exit_code == 0, result.output
-    assert "byte-identical to the shipped wide-v1.json: yes" in " ".join(result.output.split())
+    assert f"byte-identical to the shipped {kind}-v1.json: yes" in " ".join(result.output.split())
 
 
 def test_train_one_seed_per_ray_task_gives_the_local_runs(tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ def test_shipped_suite_loads_and_matches_its_hash(name: str) -> None:
     assert shipped_path(name).read_text() == suite_text(suite.content)
 
 
-@pytest.mark.parametrize("kind", ["narrow", "wide"])
+@pytest.mark.parametrize("kind", ["narrow", pytest.param("wide", marks=pytest.mark.slow)])  # wide: about 30 s
 def test_generate_reproduces_the_shipped_file_byte_for_byte(kind: str) -> None:
     text = suite_text(generate_suite(kind))
     assert text == shipped_path(f"{kind}-v1").read_text()
@@ -111,11 +111,13 @@ def test_default_env_plays_the_canonical_narrow_task() -> None:
 
 
 def test_design_report_is_generated_from_the_suites(tmp_path: Path) -> None:
+    """The report of the two narrow suites: its figures, and each suite's section word for word as the shipped
+    docs/suites.md has it (the whole report with the wide suites: the slow tier's test below)."""
     from matplotlib.image import imread
 
     from mewa_bench.reports.suite_report import policy_ratio_stats, write_report
 
-    paths = write_report(tmp_path)
+    paths = write_report(tmp_path, ("narrow-v1", "narrow-v2"))
     text = (tmp_path / "suites.md").read_text()
     narrow = load_suite("narrow-v1")
     assert narrow.sha256 in text
@@ -125,9 +127,20 @@ def test_design_report_is_generated_from_the_suites(tmp_path: Path) -> None:
     for png in paths[1:]:
         image = imread(png)
         assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 600
-    # The shipped report is up to date with the shipped suites.
+    shipped = (Path(__file__).resolve().parents[1] / "docs" / "suites.md").read_text()
+    sections = text.split("\n## ")[1:]
+    assert [section.split("\n")[0] for section in sections][-2:] == ["narrow-v1", "narrow-v2"]
+    for section in sections[-2:]:
+        assert "\n## " + section in shipped, section.split("\n")[0]
+
+
+@pytest.mark.slow  # every suite's section and figure: about 45 s; the narrow suites' run by default (above)
+def test_the_shipped_design_report_is_the_generated_one(tmp_path: Path) -> None:
+    from mewa_bench.reports.suite_report import write_report
+
+    write_report(tmp_path)
     shipped = Path(__file__).resolve().parents[1] / "docs" / "suites.md"
-    assert shipped.read_text() == text
+    assert shipped.read_text() == (tmp_path / "suites.md").read_text()
 
 
 def test_generate_check_compares_without_writing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

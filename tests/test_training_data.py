@@ -366,6 +366,7 @@ def test_the_expert_plays_the_same_episodes_in_parallel_processes():
         assert np.array_equal(getattr(one, field), getattr(two, field)), field
 
 
+@pytest.mark.slow  # about a minute; smaller rebuilds' bytes are checked by default (test_a_rebuild_gives_the_same_bytes...)
 def test_a_full_size_build_gives_the_sha256_the_shipped_catalog_records(tmp_path):
     """The 1 M-frame random tier of narrow-v2 (about 20 s), rebuilt from scratch: the archive's sha256 is the one
     the shipped catalog's `builds` section records, so every recorded build can be checked the same way."""

@@ -15,18 +15,18 @@ training loop, checkpoints, and `DPTVectorAgent`, which plays a checkpoint under
   the worker did), the new-episode flag, plus an embedding of the episode's index. The model
   predicts the optimal action of frame t from tokens 0..t: what the behaviour did so far is its
   context, the worker it must infer.
-- Model: a pre-norm causal transformer without position embeddings: the context is a set of
-  transitions, as in the paper.
+- Model: a pre-norm causal transformer without position embeddings (`agents.causal_transformer`, shared
+  with AD): the context is a set of transitions, as in the paper.
 - Training: cross-entropy against the optimal labels on every frame of a span of up to
   2 x `context` tokens of each of `batch` meta-episodes, ending at a frame drawn uniformly, with
   the attention of every token limited to its last `context` tokens, as when playing; AdamW;
   `total_steps` counts spans (meta-episodes) seen. Deterministic for a given seed on one machine
   (torch's CPU kernels, one thread); a resumed run draws its spans afresh from the seed and its
   update, so it is not the bytes of an uninterrupted one.
-- Playing: each lane keeps the keys and values of its last `context` tokens per layer (a ring
-  buffer: without position embeddings their order does not matter; as in any sliding-window
-  cache, the states of a deeper layer were made when those tokens saw their own last `context`),
-  so a step costs one token's pass; the action is sampled from the predicted distribution with the lane's generator
+- Playing: each lane keeps the keys and values of its last `context` tokens per layer
+  (`causal_transformer.LaneCache`, a ring buffer allocated once: without position embeddings their order
+  does not matter; as in any sliding-window cache, the states of a deeper layer were made when those tokens
+  saw their own last `context`), so a step costs one token's pass; the action is sampled from the predicted distribution with the lane's generator
   (posterior-sampling-like, as in the paper's online deployment), or the most likely one with
   `greedy`.
 
@@ -45,21 +45,17 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mewa_bench.agents.lanes import LaneGenerators, pick_actions, truthy
+from mewa_bench.agents.causal_transformer import EPISODES, OBS, TOKEN, TransformerLanes, make_tokens, make_transformer
+from mewa_bench.agents.lanes import truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, fit_labels, load_for_play, offline_settings,
                                            restore, resumed, torch_module)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
-from mewa_bench.protocol.agent import SingleLane, state_vector
+from mewa_bench.protocol.agent import SingleLane
 
 __all__ = ["CHECKPOINT", "METRICS", "DPTAgent", "DPTVectorAgent", "Sequences", "Settings", "STEP_UNIT",
-           "dataset_sequences", "make_tokens", "settings_from", "sequences_from_frames", "train", "train_job", "train_run"]
+           "dataset_sequences", "make_tokens", "settings_from", "sequences_from_frames", "train", "train_run"]
 
 STEP_UNIT = "meta-episodes"  # what `total_steps` counts (`train --steps`)
-OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
-OBS = 18
-TOKEN = 2 * OBS + 4 + 2  # observation, previous observation, previous action one-hot, previous reward, new episode
-EPISODES = 10  # episode-index embeddings (later episodes share the last one)
-ACTIONS = 4
 
 
 @dataclass
@@ -115,17 +111,6 @@ def sequences_from_frames(obs: np.ndarray, action: np.ndarray, reward: np.ndarra
                      starts.astype(np.int64))
 
 
-def make_tokens(obs: np.ndarray, previous_obs: np.ndarray, previous_action: np.ndarray, previous_reward: np.ndarray,
-                new_episode: np.ndarray) -> np.ndarray:
-    """Tokens float32 [n, TOKEN] (the observations scaled by OBS_SCALE); a previous action of -1: none."""
-    tokens = np.zeros((len(obs), TOKEN), dtype=np.float32)
-    tokens[:, :OBS], tokens[:, OBS:2 * OBS] = np.asarray(obs) / OBS_SCALE, np.asarray(previous_obs) / OBS_SCALE
-    rows = np.flatnonzero(np.asarray(previous_action) >= 0)
-    tokens[rows, 2 * OBS + np.asarray(previous_action)[rows]] = 1.0
-    tokens[:, -2], tokens[:, -1] = previous_reward, new_episode
-    return tokens
-
-
 def dataset_sequences(root: Path | str, suite: str | None = None) -> Sequences:
     """The sequences of a training dataset on disk, after the dataset's checks (no test worker, no protocol key)."""
     import pyarrow.parquet as pq
@@ -157,67 +142,9 @@ def _torch() -> Any:
 
 
 def make_model(settings: Settings) -> Any:
-    """The causal transformer: token and episode embeddings, `layers` pre-norm blocks, an action head."""
-    torch = _torch()
-    nn = torch.nn
-    d, heads = settings.d_model, settings.heads
-
-    class Block(nn.Module):
-        def __init__(self) -> None:
-            super().__init__()
-            self.norm1, self.norm2 = nn.LayerNorm(d), nn.LayerNorm(d)
-            self.qkv, self.out = nn.Linear(d, 3 * d), nn.Linear(d, d)
-            self.mlp = nn.Sequential(nn.Linear(d, 4 * d), nn.GELU(), nn.Linear(4 * d, d))
-
-        def split(self, x: Any) -> tuple[Any, Any, Any]:
-            """Queries, keys and values [B, heads, L, d / heads] of x [B, L, d]."""
-            q, k, v = self.qkv(self.norm1(x)).chunk(3, dim=-1)
-            shape = (x.shape[0], x.shape[1], heads, d // heads)
-            return tuple(t.reshape(shape).transpose(1, 2) for t in (q, k, v))
-
-        def attend(self, x: Any, q: Any, k: Any, v: Any, mask: Any) -> Any:
-            """x + attention(q over k, v; `mask` True where allowed) + MLP."""
-            attended = torch.nn.functional.scaled_dot_product_attention(q, k, v, attn_mask=mask)
-            x = x + self.out(attended.transpose(1, 2).reshape(x.shape))
-            return x + self.mlp(self.norm2(x))
-
-    class DPT(nn.Module):
-        def __init__(self) -> None:
-            super().__init__()
-            self.embed, self.episode = nn.Linear(TOKEN, d), nn.Embedding(EPISODES, d)
-            self.blocks = nn.ModuleList(Block() for _ in range(settings.layers))
-            self.norm, self.head = nn.LayerNorm(d), nn.Linear(d, ACTIONS)
-
-        def inputs(self, tokens: Any, episode: Any) -> Any:
-            return self.embed(tokens) + self.episode(episode)
-
-        def forward(self, tokens: Any, episode: Any, valid: Any) -> Any:
-            """Logits [B, L, 4] for whole sequences (tokens [B, L, TOKEN], episode [B, L], valid [B, L] bool),
-            each token attending to itself and the `context` - 1 tokens before it (as a lane's cache holds)."""
-            x = self.inputs(tokens, episode)
-            length = x.shape[1]
-            window = torch.ones(length, length, dtype=torch.bool).tril().triu(-(settings.context - 1))
-            mask = window[None, None] & valid[:, None, None, :]
-            for block in self.blocks:
-                x = block.attend(x, *block.split(x), mask)
-            return self.head(self.norm(x))
-
-        def step(self, tokens: Any, episode: Any, cache: list[tuple[Any, Any]], lanes: Any, lengths: Any) -> Any:
-            """Logits [n, 4] for one new token of each of `lanes`, which has seen lengths[i] tokens before; `cache`
-            holds per layer the keys and values of each lane's last ones ([lanes, heads, context, d / heads], a
-            ring buffer); the new ones are added."""
-            x = self.inputs(tokens, episode)[:, None, :]
-            capacity = cache[0][0].shape[2]
-            span = min(int(lengths.max()) + 1, capacity)
-            allowed = (torch.arange(span)[None, :] <= lengths[:, None])[:, None, None, :]  # [n, 1, 1, span]
-            slot = lengths % capacity
-            for block, (keys, values) in zip(self.blocks, cache):
-                q, k, v = block.split(x)
-                keys[lanes, :, slot], values[lanes, :, slot] = k[:, :, 0], v[:, :, 0]
-                x = block.attend(x, q, keys[lanes, :, :span], values[lanes, :, :span], allowed)
-            return self.head(self.norm(x[:, 0]))
-
-    return DPT()
+    """The causal transformer (`agents.causal_transformer`): token and episode embeddings, `layers` pre-norm
+    blocks, an action head."""
+    return make_transformer(settings.d_model, settings.heads, settings.layers, settings.context)
 
 
 def train(settings: Settings, out: Path, resume: bool = False, data: Sequences | None = None,
@@ -264,57 +191,15 @@ def _batch(torch: Any, data: Sequences, first: np.ndarray, size: np.ndarray) -> 
     return tuple(torch.as_tensor(a) for a in (tokens, episode, label, valid))
 
 
-class DPTVectorAgent:
+class DPTVectorAgent(TransformerLanes):
     """Plays a DPT checkpoint on many lanes at once under the evaluation protocol (SPEC section 6): per lane a
-    KV cache of its pair's tokens so far and the previous action, reward and new-episode flag."""
+    KV cache of its pair's tokens so far and the previous transition (`causal_transformer.TransformerLanes`)."""
 
     def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
                  greedy: bool | str = False) -> None:
-        torch = _torch()
-        self.settings, self.model = load_for_play(checkpoint, Settings, make_model)
-        self.greedy, self.generators = truthy(greedy), LaneGenerators(int(seed), int(num_lanes))
-        self.lengths = np.zeros(num_lanes, dtype=np.int64)
-        self.previous_action = np.full(num_lanes, -1, dtype=np.int64)
-        self.previous_reward = np.zeros(num_lanes)
-        self.previous_obs = np.zeros((num_lanes, OBS))
-        self.new_episode = np.zeros(num_lanes, dtype=np.float32)
-        self.episode = np.zeros(num_lanes, dtype=np.int64)
+        self.settings, model = load_for_play(checkpoint, Settings, make_model)
         s = self.settings
-        shape = (int(num_lanes), s.heads, s.context, s.d_model // s.heads)
-        self.cache = [(torch.zeros(shape, dtype=torch.float64), torch.zeros(shape, dtype=torch.float64))
-                      for _ in range(s.layers)]
-
-    def reset_task(self, lanes: np.ndarray, seeds: np.ndarray) -> None:
-        """New pairs: an empty context, no previous action."""
-        self.generators.reset(lanes, seeds)
-        self.lengths[lanes], self.previous_action[lanes], self.previous_reward[lanes] = 0, -1, 0.0
-        self.previous_obs[lanes] = 0.0
-        self.new_episode[lanes], self.episode[lanes] = 0.0, 0
-
-    def act(self, lanes: np.ndarray, observations: Any) -> np.ndarray:
-        """The model's actions for `lanes`, its context each lane's tokens so far."""
-        torch = _torch()
-        tokens = make_tokens(state_vector(observations), self.previous_obs[lanes], self.previous_action[lanes],
-                             self.previous_reward[lanes], self.new_episode[lanes])
-        with torch.no_grad():
-            logits = self.model.step(torch.as_tensor(tokens, dtype=torch.float64),
-                                     torch.as_tensor(np.minimum(self.episode[lanes], EPISODES - 1)), self.cache,
-                                     torch.as_tensor(lanes), torch.as_tensor(self.lengths[lanes]))
-            probs = torch.softmax(logits, dim=1).numpy()
-        self.lengths[lanes] += 1
-        self.new_episode[lanes] = 0.0
-        return pick_actions(probs, lanes, self.generators, self.greedy)
-
-    def observe(self, lanes: np.ndarray, transitions: Any) -> None:
-        """Remember each lane's last action and reward for its next token."""
-        self.previous_obs[lanes] = state_vector(transitions.obs)
-        self.previous_action[lanes] = transitions.action
-        self.previous_reward[lanes] = transitions.reward
-
-    def end_episode(self, lanes: np.ndarray) -> None:
-        """The next token of these lanes starts their pair's next episode."""
-        self.new_episode[lanes] = 1.0
-        self.episode[lanes] += 1
+        super().__init__(model, s.layers, s.heads, s.d_model, s.context, int(num_lanes), int(seed), truthy(greedy))
 
 
 def DPTAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
@@ -339,8 +224,3 @@ def train_run(settings: Settings, folder: Path, resume: bool, command: str,
     """Train one seed into `folder` and make it a submission; the files written."""
     checkpoint = train(settings, folder, resume, progress=progress)
     return [checkpoint, folder / METRICS, *write_submission(folder, command, settings)]
-
-
-def train_job(job: tuple[Settings, Path, bool, str]) -> list[Path]:
-    """`train_run` for one (settings, folder, resume, command): a unit of work for a Ray task."""
-    return train_run(*job)

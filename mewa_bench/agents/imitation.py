@@ -43,7 +43,7 @@ from mewa_bench.agents.training_io import write_submission as write_submission_f
 from mewa_bench.protocol.agent import SingleLane
 
 __all__ = ["CHECKPOINT", "METRICS", "ImitationAgent", "ImitationVectorAgent", "STEP_UNIT", "Settings", "make_policy",
-           "settings_from", "train", "train_job", "train_run"]
+           "settings_from", "train", "train_run"]
 
 STEP_UNIT = "meta-episodes"  # what `total_steps` counts (`train --steps`)
 OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
@@ -145,9 +145,10 @@ class ImitationVectorAgent(RecurrentLanes):
     the GRU state and the previous action, reward and new-episode flag (`agents.lanes.RecurrentLanes`)."""
 
     def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
-                 greedy: bool | str = False) -> None:
+                 greedy: bool | str = False, sample_episodes: int | str = 0) -> None:
         self.settings, self.policy = load_for_play(checkpoint, Settings, lambda s: make_policy(s.hidden))
-        super().__init__(self.policy.step, self.settings.hidden, int(num_lanes), int(seed), truthy(greedy))
+        super().__init__(self.policy.step, self.settings.hidden, int(num_lanes), int(seed), truthy(greedy),
+                         int(sample_episodes))
 
 
 def ImitationAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:
@@ -173,8 +174,3 @@ def train_run(settings: Settings, folder: Path, resume: bool, command: str,
     """Train one seed into `folder` and make it a submission; the files written."""
     checkpoint = train(settings, folder, resume, progress=progress)
     return [checkpoint, folder / METRICS, *write_submission(folder, command, settings)]
-
-
-def train_job(job: tuple[Settings, Path, bool, str]) -> list[Path]:
-    """`train_run` for one (settings, folder, resume, command): a unit of work for a Ray task."""
-    return train_run(*job)

@@ -61,10 +61,13 @@ class RecurrentLanes:
     """A recurrent meta-RL agent's lanes (RL^2's policy, VariBAD's encoder): per lane the hidden state and
     the previous action, reward and new-episode flag, kept across the 10 episodes of a pair."""
 
-    def __init__(self, forward: Forward, hidden: int, num_lanes: int, seed: int, greedy: bool) -> None:
+    def __init__(self, forward: Forward, hidden: int, num_lanes: int, seed: int, greedy: bool,
+                 sample_episodes: int = 0) -> None:
         torch = torch_module("the learned baselines")
         self.forward = forward
         self.greedy = greedy
+        self.sample_episodes = sample_episodes  # when greedy: the first episodes of a pair still sample
+        self.episode = np.zeros(num_lanes, dtype=np.int64)
         self.generators = LaneGenerators(seed, num_lanes)
         self.h = torch.zeros(num_lanes, hidden, dtype=torch.float64)
         self.previous_action = np.full(num_lanes, -1, dtype=np.int64)
@@ -78,6 +81,7 @@ class RecurrentLanes:
         self.h[lanes] = 0.0
         self.previous_action[lanes], self.previous_reward[lanes], self.new_episode[lanes] = -1, 0.0, 0.0
         self.first[lanes] = True
+        self.episode[lanes] = 0
 
     def act(self, lanes: np.ndarray, observations: Any) -> np.ndarray:
         """The policy's actions for `lanes` (sampled with each lane's generator, or the most likely if greedy)."""
@@ -93,7 +97,13 @@ class RecurrentLanes:
             self.h[index] = h
             probs = torch.softmax(logits, dim=1).numpy()
         self.first[lanes] = False
-        return pick_actions(probs, lanes, self.generators, self.greedy)
+        if not self.greedy or self.sample_episodes == 0:
+            return pick_actions(probs, lanes, self.generators, self.greedy)
+        sampled = self.episode[lanes] < self.sample_episodes
+        actions = np.argmax(probs, axis=1).astype(np.int64)
+        if sampled.any():
+            actions[sampled] = self.generators.choice(lanes[sampled], probs[sampled])
+        return actions
 
     def observe(self, lanes: np.ndarray, transitions: Any) -> None:
         """Remember each lane's last action and reward for its next input."""
@@ -104,6 +114,7 @@ class RecurrentLanes:
     def end_episode(self, lanes: np.ndarray) -> None:
         """The next observation of these lanes starts their pair's next episode."""
         self.new_episode[lanes] = 1.0
+        self.episode[lanes] += 1
 
 
 class LaneSteps:

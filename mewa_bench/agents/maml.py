@@ -51,8 +51,7 @@ from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, 
                                            make_meta_env, mean_or_nan, restore, resumed, save_checkpoint, settings_with,
                                            torch_module, write_submission)
 
-__all__ = ["CHECKPOINT", "METRICS", "MAMLAgent", "MAMLVectorAgent", "Settings", "make_agent", "settings_from", "train", "train_job",
-           "train_run"]
+__all__ = ["CHECKPOINT", "METRICS", "MAMLAgent", "MAMLVectorAgent", "Settings", "make_agent", "settings_from", "train", "train_run"]
 
 OBS_SIZE = 18
 ACTIONS = 4
@@ -432,8 +431,3 @@ def train_run(settings: Settings, folder: Path, resume: bool, command: str,
         folder, command, settings, "maml", "MAML", "MAMLVectorAgent",
         "MAML (a feed-forward policy adapted by one policy-gradient step after each episode, meta-trained with "
         "first-order MAML and PPO; `mewa_bench/agents/maml.py`).")]
-
-
-def train_job(job: tuple[Settings, Path, bool, str]) -> list[Path]:
-    """`train_run` for one (settings, folder, resume, command): a unit of work for a Ray task."""
-    return train_run(*job)

@@ -12,8 +12,6 @@ An algorithm is a module listed in `ALGORITHMS` that exposes (what `mewa-bench t
   the folder's last checkpoint) and make the folder a submission (`write_submission`); the files
   written. `progress(env_steps_done, env_steps_total, row)` is called after every update with the
   metrics row just written.
-- `train_job(job) -> list[Path]`: `train_run(*job)` for one (settings, folder, resume, command),
-  a module-level function so that it can run as a Ray task.
 - `METRICS`: the metrics file name in the run folder. Every row has `update`, `env_steps` and the
   meta-train `episode_1_normalised_return` / `episode_10_normalised_return` (NaN when no such
   episode ended during the update), which the progress bar and the training curve read.
@@ -47,7 +45,8 @@ ALGORITHMS = {  # name -> module (one file per algorithm)
     "pearl": "mewa_bench.agents.pearl",
     "maml": "mewa_bench.agents.maml",
     "dpt": "mewa_bench.agents.dpt",  # offline: learns from a training dataset (train --dataset)
-    "imitation": "mewa_bench.agents.imitation",  # offline: imitates the expert tier's own actions
+    "imitation": "mewa_bench.agents.imitation",  # offline: imitates a behaviour's own actions (GRU)
+    "ad": "mewa_bench.agents.ad",  # offline: Algorithm Distillation of the learning histories (transformer)
 }
 
 S = TypeVar("S")

@@ -52,7 +52,7 @@ from mewa_bench.protocol.agent import SingleLane
 from mewa_bench.envs.meta_episode import META_OBS_SIZE, NEW_EPISODE, PREVIOUS_REWARD
 from mewa_bench.game.palette import NUM_COLORS, OBS_SIZE
 
-__all__ = ["CHECKPOINT", "METRICS", "Settings", "VariBADAgent", "VariBADVectorAgent", "settings_from", "train", "train_job", "train_run",
+__all__ = ["CHECKPOINT", "METRICS", "Settings", "VariBADAgent", "VariBADVectorAgent", "settings_from", "train", "train_run",
            "workers_arg"]
 
 OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
@@ -488,8 +488,3 @@ def train_run(settings: Settings, folder: Path, resume: bool, command: str,
     """Train one seed into `folder` and make it a submission; the files written."""
     checkpoint = train(settings, folder, resume, progress)
     return [checkpoint, folder / METRICS, *write_submission(folder, command, settings)]
-
-
-def train_job(job: tuple[Settings, Path, bool, str]) -> list[Path]:
-    """`train_run` for one (settings, folder, resume, command): a unit of work for a Ray task."""
-    return train_run(*job)

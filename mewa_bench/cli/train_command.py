@@ -14,14 +14,14 @@ from mewa_bench.design.suites import DEFAULT_SUITE
 
 
 @app.command()
-def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pearl, maml, dpt or imitation (offline) "
+def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pearl, maml, dpt, imitation or ad (the last three offline) "
                                                               "(mewa_bench.agents.training_io.ALGORITHMS)."),
           suite: str = typer.Option(None, help="Suite whose tasks and meta-train workers it trains on (default: "
                                                f"{DEFAULT_SUITE}; an offline run's is its dataset's)."),
           seed: list[int] = typer.Option([1], "--seed", help="Training seed (repeatable: one run per seed; "
                                                            "runs are deterministic given it)."),
           steps: int = typer.Option(None, min=1, help="Env steps to train for (default 4,000,000; dpt, "
-                                                      "imitation: meta-episodes, default 40,000), rounded up to whole updates "
+                                                      "imitation: meta-episodes, default 40,000; ad: windows, default 32,000), rounded up to whole updates "
                                                       "(the exact number is printed before training starts)."),
           out: Path = typer.Option(None, help="Run folder (default: runs/<algo>-<suite>-seed<seed>; with several "
                                               "seeds, <out>/<algo>-<suite>-seed<seed>)."),
@@ -30,7 +30,7 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
                                                                 "(repeatable; default: the suite's meta-train distribution)."),
           set_: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Change one of the algorithm's "
                                          "settings, e.g. learning_rate=3e-4 (repeatable; recorded in run.json)."),
-          dataset: Path = typer.Option(None, "--dataset", help="Offline algorithms (dpt, imitation): the training dataset "
+          dataset: Path = typer.Option(None, "--dataset", help="Offline algorithms (dpt, imitation, ad): the training dataset "
                                                                "folder they learn from (`mewa-bench datasets build "
                                                                "NAME` writes mewa-datasets/NAME); its suite is the "
                                                                "run's."),
@@ -84,7 +84,7 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
 
 
 OFFLINE_PROGRESS_TEXT = ("progress: the loss and accuracy of its predictions of the dataset's labels (dpt: the optimal "
-                         "actions; imitation: the behaviour's) (not a "
+                         "actions; imitation, ad: the behaviour's) (not a "
                          "score: `evaluate` plays the suite's curated test workers, which the dataset never holds)")
 TRAIN_PROGRESS_TEXT = ("progress: meta-train normalised return, episode 1 -> 10 of a pair (not a score: `evaluate` "
                        "scores the suite's curated test workers, which training never meets; see the README)")
