@@ -241,13 +241,7 @@ class TransformerLanes:
                                      torch.as_tensor(np.minimum(self.episode[lanes], EPISODES - 1)), self.cache, lanes)
             probs = torch.softmax(logits, dim=1).numpy()
         self.new_episode[lanes] = 0.0
-        if not self.greedy or self.sample_episodes == 0:
-            return pick_actions(probs, lanes, self.generators, self.greedy)
-        actions = np.argmax(probs, axis=1).astype(np.int64)
-        sampled = self.episode[lanes] < self.sample_episodes
-        if sampled.any():
-            actions[sampled] = self.generators.choice(lanes[sampled], probs[sampled])
-        return actions
+        return pick_actions(probs, lanes, self.generators, self.greedy, self.episode[lanes] < self.sample_episodes)
 
     def observe(self, lanes: np.ndarray, transitions: Any) -> None:
         """Remember each lane's last observation, action and reward for its next token."""

@@ -49,9 +49,16 @@ class LaneGenerators:
         return self.generators[lane]
 
 
-def pick_actions(probs: np.ndarray, lanes: np.ndarray, generators: LaneGenerators, greedy: bool) -> np.ndarray:
-    """The most likely actions (`greedy`) or actions sampled with each lane's generator."""
-    return np.argmax(probs, axis=1).astype(np.int64) if greedy else generators.choice(lanes, probs)
+def pick_actions(probs: np.ndarray, lanes: np.ndarray, generators: LaneGenerators, greedy: bool,
+                 sampling: np.ndarray | None = None) -> np.ndarray:
+    """The most likely actions (`greedy`) or actions sampled with each lane's generator; when greedy, the lanes
+    where `sampling` [n] is True still sample (e.g. a pair's first episodes)."""
+    if not greedy:
+        return generators.choice(lanes, probs)
+    actions = np.argmax(probs, axis=1).astype(np.int64)
+    if sampling is not None and sampling.any():
+        actions[sampling] = generators.choice(lanes[sampling], probs[sampling])
+    return actions
 
 
 Forward = Callable[[Any, Any, Any], tuple[Any, Any]]  # (x [n, 24], h [n, H], reset [n]) -> (logits, new h)
@@ -97,13 +104,7 @@ class RecurrentLanes:
             self.h[index] = h
             probs = torch.softmax(logits, dim=1).numpy()
         self.first[lanes] = False
-        if not self.greedy or self.sample_episodes == 0:
-            return pick_actions(probs, lanes, self.generators, self.greedy)
-        sampled = self.episode[lanes] < self.sample_episodes
-        actions = np.argmax(probs, axis=1).astype(np.int64)
-        if sampled.any():
-            actions[sampled] = self.generators.choice(lanes[sampled], probs[sampled])
-        return actions
+        return pick_actions(probs, lanes, self.generators, self.greedy, self.episode[lanes] < self.sample_episodes)
 
     def observe(self, lanes: np.ndarray, transitions: Any) -> None:
         """Remember each lane's last action and reward for its next input."""
