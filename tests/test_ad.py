@@ -82,12 +82,12 @@ def test_a_lane_plays_on_the_tokens_it_was_trained_on(tmp_path: Path) -> None:
 def test_ad_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_path: Path) -> None:
     """The learning test: trained on 256 posterior-sampling histories of 10 episodes (300 updates of 8), the
     transformer improves from episode 1 to 10 in context and beats the best fixed policy, judged under the
-    protocol's loop on 20 seeds per worker (measured: adaptability +0.62 +- 0.07, +0.40 over the best fixed
-    policy; after 120 updates of 16 it fails: -0.12)."""
+    protocol's loop on 20 seeds per worker, each on a lane (measured: adaptability +0.62 +- 0.07, +0.40 over the
+    best fixed policy; after 120 updates of 16 it fails: -0.12)."""
     settings = ad.Settings(suite="narrow-v1", total_steps=300 * 8, batch=8, d_model=32, context=256,
                            checkpoint_every=10_000)
     checkpoint = ad.train(settings, tmp_path / "run", data=ad.windows_from(learner_histories(256, 10, 0)))
-    played_as_submitted = lambda checkpoint, seed: ad.ADAgent(checkpoint, seed, greedy=True)  # noqa: E731
+    played_as_submitted = lambda checkpoint, lanes: ad.ADVectorAgent(checkpoint, lanes, greedy=True)  # noqa: E731
     assert_adapts_and_beats_the_best_fixed_policy(*judge(checkpoint, 20, played_as_submitted))
 
 

@@ -26,7 +26,7 @@ from mewa_bench.envs.mewa_env import MewaEnv
 from mewa_bench.game.table import transition_table
 from mewa_bench.protocol.config import default_seeds, env_seed
 
-SMALL = {"random": 600, "random-task-specific": 600, "learning-histories": 1, "expert": 1}
+SMALL = {"random": 600, "random-task-specific": 600, "learning-histories": 1, "expert": 1, "task-inferring-histories": 1}
 
 
 pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
@@ -40,11 +40,13 @@ def small_spec(suite: str, tier: str):
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    """One small dataset per tier on narrow-v2, and the random task-specific tier on wide-v2 (several tasks)."""
+    """One small dataset per tier on narrow-v2, and on wide-v2 (several tasks) the random task-specific tier and the
+    task-inferring histories (whose learner must tell its look-alike tasks apart)."""
     out = tmp_path_factory.mktemp("training")
     roots = {}
     tiers = ("random", "random-task-specific", "learning-histories", "expert")
-    for suite, tier in [("narrow-v2", t) for t in tiers] + [("wide-v2", "random-task-specific")]:
+    wide = [("wide-v2", "random-task-specific"), ("wide-v2", "task-inferring-histories")]
+    for suite, tier in [("narrow-v2", t) for t in tiers] + wide:
         roots[(suite, tier)] = out / f"{suite}-{tier}"
         build_training_dataset(small_spec(suite, tier), roots[(suite, tier)], jobs=1)
     return roots
@@ -184,7 +186,7 @@ def test_stored_reference_scores_are_the_exact_engines(built):
             best.append(values[:-1].max())
             assert abs(record["max_expected"] - values[:-1].max()) < 1e-11
         assert abs(m["ref_min_score"] - np.mean(rand)) < 1e-11 and abs(m["ref_max_score"] - np.mean(best)) < 1e-11
-        if key[1] == "expert":
+        if key[1] in ("expert", "task-inferring-histories"):
             assert "expected_return" not in df.columns  # an adaptive agent's behaviour has no fixed value
             continue
         first = df.groupby(["meta_episode_index", "episode_in_meta_episode"]).first()
@@ -199,7 +201,8 @@ def test_stored_reference_scores_are_the_exact_engines(built):
 
 
 def test_episodes_replay_in_the_env_with_their_luck_keys(built):
-    for key in (("narrow-v2", "random"), ("narrow-v2", "expert"), ("wide-v2", "random-task-specific")):
+    for key in (("narrow-v2", "random"), ("narrow-v2", "expert"), ("wide-v2", "random-task-specific"),
+                ("wide-v2", "task-inferring-histories")):
         df, suite = frames(built[key]), load_suite(key[0])
         env = MewaEnv(task=suite.tasks[0], worker=[0.1] * suite.tasks[0].N)
         for episode in (0, int(df["episode_index"].max())):

@@ -68,6 +68,7 @@ class Settings:
     layers: int = 2
     heads: int = 4
     learning_rate: float = 1e-3
+    anneal: bool = False  # the learning rate falls to 0 along a cosine over the run (false: constant)
     weight_decay: float = 0.01
     max_grad_norm: float = 1.0
     greedy: bool = True  # how the submission's agent.py plays: the most likely action (false: sampled)
@@ -174,6 +175,9 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Windows | N
         sequences = rng.choice(len(data), size=settings.batch, replace=len(data) < settings.batch)
         first = rng.integers(0, latest[sequences] + 1)
         tokens, episode, label, valid = window_batch(data, sequences, first, settings.episodes, settings.label)
+        if settings.anneal:
+            for group in optimizer.param_groups:
+                group["lr"] = settings.learning_rate * 0.5 * (1.0 + np.cos(np.pi * update / updates))
         logits = model(tokens, episode, valid)
         fit_labels(model, optimizer, logits, label, valid, settings, update, updates, began, out, progress)
     return out / CHECKPOINT

@@ -21,7 +21,8 @@ from mewa_bench.datasets.pack import pack_dataset
 from mewa_bench.datasets.training_data import TrainingSpec, build_training_dataset, training_spec
 
 BEHAVIOUR_NAMES = {"random": "random", "random-task-specific": "random-task-specific",
-                   "learning-histories": "posterior-sampling-toptimal"}
+                   "learning-histories": "posterior-sampling-toptimal",
+                   "task-inferring-histories": "posterior-sampling-task-and-toptimal"}
 
 
 @dataclass(frozen=True)

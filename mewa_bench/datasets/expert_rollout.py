@@ -53,16 +53,25 @@ def load_agent_module(path: Path) -> Any:
 
 def play_expert(path: Path, suite: str, tasks: tuple[Task, ...], task_idx: np.ndarray, workers: np.ndarray,
                 keys: np.ndarray, seeds: np.ndarray) -> Played:
-    """Meta-episode m: the agent reset with seed `seeds[m]`, then len(keys[m]) episodes on (task, worker)."""
+    """Meta-episode m: the agent file's agent reset with seed `seeds[m]`, then len(keys[m]) episodes on (task, worker)."""
     from gymnasium import spaces
 
-    from mewa_bench.envs.mewa_env import MewaEnv
     from mewa_bench.game.palette import NUM_COLORS, OBS_SIZE
-    from mewa_bench.protocol.agent import Transition
 
     module = load_agent_module(path)
     agent = module.make_agent(spaces.Box(0.0, 255.0, (OBS_SIZE,), np.float32), spaces.Discrete(NUM_COLORS),
                               suite=suite, seed=0)
+    return play_agent(agent, tasks, task_idx, workers, keys, seeds)
+
+
+def play_agent(agent: Any, tasks: tuple[Task, ...], task_idx: np.ndarray, workers: np.ndarray, keys: np.ndarray,
+               seeds: np.ndarray) -> Played:
+    """Meta-episode m: `agent` (the protocol's reset_task / act / observe / end_episode) reset with seed `seeds[m]`,
+    then len(keys[m]) episodes on (tasks[task_idx[m]], workers[m]) with those luck keys."""
+    from mewa_bench.envs.mewa_env import MewaEnv
+    from mewa_bench.game.palette import NUM_COLORS
+    from mewa_bench.protocol.agent import Transition
+
     env = MewaEnv(task=tasks[int(task_idx[0])], worker=workers[0][: tasks[int(task_idx[0])].N])
     rows: list[tuple] = []
     lengths: list[int] = []
@@ -95,15 +104,22 @@ def play_expert(path: Path, suite: str, tasks: tuple[Task, ...], task_idx: np.nd
 
 def play_expert_parallel(path: Path, suite: str, tasks: tuple[Task, ...], task_idx: np.ndarray, workers: np.ndarray,
                          keys: np.ndarray, seeds: np.ndarray, jobs: int = 1, map_tasks: MapTasks | None = None) -> Played:
-    """`play_expert` over `jobs` x 4 chunks of meta-episodes, in `jobs` processes or as `map_tasks` (the same frames
-    for any `jobs` and either way: each meta-episode depends only on its worker, luck keys and seed)."""
+    """`play_expert` over `jobs` x 4 chunks of meta-episodes (see `play_in_chunks`)."""
+    return play_in_chunks(play_expert, (path, suite, tasks), task_idx, workers, keys, seeds, jobs, map_tasks)
+
+
+def play_in_chunks(play: Callable[..., Played], head: tuple, task_idx: np.ndarray, workers: np.ndarray,
+                   keys: np.ndarray, seeds: np.ndarray, jobs: int = 1, map_tasks: MapTasks | None = None) -> Played:
+    """`play(*head, task_idx, workers, keys, seeds)` over `jobs` x 4 chunks of meta-episodes, in `jobs` processes or as
+    `map_tasks` (the same frames for any `jobs` and either way: each meta-episode depends only on its worker, luck
+    keys and seed)."""
     from mewa_bench.datasets.chain_rollout import concat_played
 
     if map_tasks is None and (jobs <= 1 or len(keys) < 2):
-        return play_expert(path, suite, tasks, task_idx, workers, keys, seeds)
+        return play(*head, task_idx, workers, keys, seeds)
     chunks = np.array_split(np.arange(len(keys)), min(jobs * 4, len(keys)))
-    args = [(path, suite, tasks, task_idx[c], workers[c], keys[c], seeds[c]) for c in chunks]
-    parts = map_tasks(play_expert, args) if map_tasks is not None else list(_pool(jobs).map(play_expert, *zip(*args)))
+    args = [(*head, task_idx[c], workers[c], keys[c], seeds[c]) for c in chunks]
+    parts = map_tasks(play, args) if map_tasks is not None else list(_pool(jobs).map(play, *zip(*args)))
     return concat_played(parts)
 
 

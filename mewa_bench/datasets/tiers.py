@@ -8,7 +8,11 @@ expected return of each episode's behaviour where one is defined.
   neither task nor worker.
   Its behaviour changes with what it has seen, so no exact expected return is stored.
 - `learning-histories`: posterior sampling over the t-optimal family (`learning_histories`), one
-  history of `history_episodes` episodes per worker, in learning order.
+  history of `history_episodes` episodes per worker, in learning order. The learner is told its task
+  (only the worker is hidden from it).
+- `task-inferring-histories`: the same kind of learner told neither task nor worker
+  (`inferring_histories`): posterior sampling over (public task, worker). Its behaviour changes within an
+  episode when the task it acts for is ruled out, so no exact expected return is stored.
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ from mewa_bench.game.task import Task
 if TYPE_CHECKING:
     from mewa_bench.datasets.expert_rollout import MapTasks
 
-TIERS = ("random", "random-task-specific", "expert", "learning-histories")
+TIERS = ("random", "random-task-specific", "expert", "learning-histories", "task-inferring-histories")
+HISTORY_TIERS = ("learning-histories", "task-inferring-histories")
 PROTOCOL_EPISODES = 10
 REPO = Path(__file__).resolve().parents[2]
 EXPERT_AGENTS = ("bayes-adaptive", "bayes-explorer")
@@ -62,7 +67,7 @@ def expected_of_episodes(tier: str, policy: np.ndarray, meta: np.ndarray, values
 
 def episodes_per_worker(tier: str, history_episodes: int) -> int:
     """Episodes of one meta-episode in a tier."""
-    return history_episodes if tier == "learning-histories" else PROTOCOL_EPISODES
+    return history_episodes if tier in HISTORY_TIERS else PROTOCOL_EPISODES
 
 
 def tier_policies(tier: str, n: int) -> tuple[str, ...]:
@@ -90,6 +95,8 @@ def behaviour_source(tier: str, expert_agent: str) -> Path:
         return expert_path(expert_agent)
     if tier == "learning-histories":
         return here / "datasets" / "learning_histories.py"
+    if tier == "task-inferring-histories":
+        return here / "datasets" / "inferring_histories.py"
     return here / "design" / "policies.py"
 
 
@@ -116,6 +123,13 @@ def play_tier(tier: str, suite: str, tasks: tuple[Task, ...], task_index: int, w
 
         played, chosen = play_histories(task, workers, keys, rng)
         return TierRun(played, chosen.reshape(-1))
+    if tier == "task-inferring-histories":
+        from mewa_bench.datasets.expert_rollout import play_in_chunks
+        from mewa_bench.datasets.inferring_histories import play_inferring_histories
+
+        played = play_in_chunks(play_inferring_histories, (tasks,), np.full(n_meta, task_index), workers, keys,
+                                agent_seeds, jobs, map_tasks)
+        return TierRun(played, np.full(n_meta * n_ep, ADAPTIVE, dtype=np.int64))
     if tier == "expert":
         from mewa_bench.datasets.expert_rollout import play_expert_parallel
 

@@ -94,7 +94,7 @@ class TrainingSpec:
 
 
 def _registry() -> dict[str, TrainingSpec]:
-    """The named training datasets: four tiers per shipped suite, 1 M frames each, plus a small one shipped."""
+    """The named training datasets: every tier (`TIERS`) per shipped suite, 1 M frames each, plus a small one shipped."""
     out = {f"{s}-train-{t}": TrainingSpec(f"{s}-train-{t}", s, t) for s in ALL_SUITES for t in TIERS}
     mini = TrainingSpec("narrow-v2-train-random-task-specific-mini", "narrow-v2", "random-task-specific",
                         frames=10_000, meta_batch=16)

@@ -109,9 +109,9 @@ def _without_prefix(message: str, path: Path) -> str:
 def _check(path: Path, results: dict[str, Any], suites: SuiteCache) -> Entry:
     """All leaderboard checks of a structurally valid results dict, then the entry."""
     suite, seeds, units = check_run(results, suites)
-    scores = verified_scores(units, suite, results["scores"])
     agent = results["agent"]
-    _check_agent_file(path, agent)
+    _check_agent_file(path, agent)  # before the scores: a stale file is refused without a bootstrap
+    scores = verified_scores(units, suite, results["scores"])
     try:
         algorithm = read_run_info(path.parent).algorithm
     except RunInfoError as e:
