@@ -98,7 +98,7 @@ def test_control_variate_scores_are_unbiased_monte_carlo(narrow: Suite) -> None:
     rng = np.random.default_rng(2024)
     pairs = [0, 5, 9, 13]
     adjusted, raw, truth = [], [], None
-    for _ in range(120):
+    for _ in range(60):
         units, truth = _synthetic_units(narrow, pairs, CV_MIN_SEEDS, rng)
         scores = score_units(narrow, units, 0.5, samples=20)
         adjusted.append(scores.mean.mean)

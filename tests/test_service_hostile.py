@@ -219,7 +219,7 @@ def test_a_killed_workers_job_is_re_queued_on_a_timer_and_retried_in_a_fresh_scr
     worker = start_worker()
     try:
         answer = post_agent(server, server.token("peggy"), AGENTS / "planting_agent.py", name="planter",
-                            agent_args={"delay": "0.003"})
+                            agent_args={"delay": "0.001"})
         assert answer.status_code == 202, answer.text
         submission = answer.json()["id"]
         deadline = time.monotonic() + 120

@@ -61,7 +61,7 @@ class TrainingSpec:
     version: str = DEFAULT_VERSION
     seed: int = 0
     meta_batch: int = 64  # meta-episodes (workers) per round
-    history_episodes: int = 50  # episodes per worker in the learning-histories tier
+    history_episodes: int = 50  # episodes per worker in the history tiers
     expert_agent: str = "bayes-explorer"  # the stronger adaptive reference (most of the v2 suites' gaps)
 
     @property
@@ -96,6 +96,9 @@ class TrainingSpec:
 def _registry() -> dict[str, TrainingSpec]:
     """The named training datasets: every tier (`TIERS`) per shipped suite, 1 M frames each, plus a small one shipped."""
     out = {f"{s}-train-{t}": TrainingSpec(f"{s}-train-{t}", s, t) for s in ALL_SUITES for t in TIERS}
+    for s in ALL_SUITES:  # a pair's 10 episodes from scratch per history (what AD's windows read), many histories
+        name = f"{s}-train-task-inferring-histories"
+        out[name] = TrainingSpec(name, s, "task-inferring-histories", frames=3_000_000, history_episodes=10)
     mini = TrainingSpec("narrow-v2-train-random-task-specific-mini", "narrow-v2", "random-task-specific",
                         frames=10_000, meta_batch=16)
     out[mini.name] = mini
