@@ -1,4 +1,4 @@
-"""AD agent trained by `mewa-bench train ad --suite wide-v2 --seed 1 --steps 32000 --out submissions/ad-wide-v2-seed1 --dataset mewa-datasets/wide-v2-train-learning-histories`; plays the checkpoint beside this file.
+"""AD agent trained by `mewa-bench train ad --set anneal=true --suite wide-v2 --seed 1 --steps 128000 --out submissions/ad-wide-v2-seed1 --dataset mewa-datasets/wide-v2-train-task-inferring-histories`; plays the checkpoint beside this file.
 
 Evaluate it: `mewa-bench evaluate submissions/ad-wide-v2-seed1/agent.py --suite wide-v2`.
 """
