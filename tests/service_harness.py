@@ -130,6 +130,9 @@ def postgres():
 
 
 BACKENDS = ["sqlite", "postgresql"]
+# The longest end-to-end tests (a real job, a killed server) run on PostgreSQL in the slow tier only: the
+# default tier keeps PostgreSQL in the API tests, the queue, the migrations and the database outage.
+BACKENDS_POSTGRES_SLOW = ["sqlite", pytest.param("postgresql", marks=pytest.mark.slow)]
 
 
 def database_url(backend: str, postgres: Postgres | None) -> str | None:

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import httpx
 import pytest
-from service_harness import (AGENTS, BACKENDS, CLI, PACED_AGENT, RANDOM_AGENT, Server, database_url, get, post_agent,
-                             post_results, postgres, require_sandbox, table_rows, wait_status)
+from service_harness import (AGENTS, BACKENDS, BACKENDS_POSTGRES_SLOW, CLI, PACED_AGENT, RANDOM_AGENT, Server,
+                             database_url, get, post_agent, post_results, postgres, require_sandbox, table_rows,
+                             wait_status)
 
 from mewa_bench.files import json_text
 from mewa_bench.protocol.results import read_results, results_text
@@ -73,7 +74,7 @@ def references(tmp_path_factory, hidden_dir) -> dict[str, dict]:
             "paced": evaluate_cli(folder, paced, "narrow-v1", *[f"--agent-arg={k}={v}" for k, v in PACED_ARGS.items()])}
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", BACKENDS_POSTGRES_SLOW)
 def test_agent_scores_on_public_and_hidden_boards_equal_evaluate(backend, tmp_path_factory, postgres, hidden_dir,
                                                                  references) -> None:
     require_sandbox()
@@ -259,7 +260,7 @@ def _paced_job_midway(server: Server, tmp_path: Path, user: str) -> tuple[int, P
     return submission, results
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", BACKENDS_POSTGRES_SLOW)
 def test_a_worker_killed_mid_job_resumes_from_its_last_finished_unit(backend, tmp_path_factory, tmp_path, postgres,
                                                                       references) -> None:
     require_sandbox()
@@ -322,7 +323,7 @@ def _start_upload(server: Server, token: str, total: int) -> socket.socket:
     return connection
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", BACKENDS_POSTGRES_SLOW)
 def test_server_killed_mid_upload_or_before_scoring_loses_nothing(backend, tmp_path_factory, postgres,
                                                                   references) -> None:
     server = new_server(tmp_path_factory, backend, postgres, None, "--workers", "1", "--lease-seconds", "2")
@@ -363,7 +364,7 @@ def _uploaded_files(server: Server) -> list[Path]:
     return sorted([*(uploads / "results").glob("*"), *(uploads / "agents").glob("*")])
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", BACKENDS_POSTGRES_SLOW)
 def test_server_killed_between_storing_an_upload_and_committing_it_leaves_nothing(backend, tmp_path_factory,
                                                                                   postgres, references) -> None:
     server = new_server(tmp_path_factory, backend, postgres, None, "--workers", "1")
