@@ -63,9 +63,10 @@ def offline_hub(tmp_path_factory):
 # The longest test files first (measured with `--durations=0`; the rest keep their order): under `-n 3 --dist
 # loadfile` each worker takes whole files in this order, so the workers finish together instead of one of them
 # starting a long file when the others are done.
-LONGEST_FIRST = ("test_service_jobs.py", "test_leaderboard.py", "test_ray.py", "test_service.py", "test_service_hostile.py",
-                 "test_service_faults.py", "test_vector_agents.py", "test_evaluate.py", "test_training_data.py",
-                 "test_service_sandbox.py", "test_imitation.py", "test_varibad.py", "test_service_browser.py")
+LONGEST_FIRST = ("test_service_jobs.py", "test_leaderboard.py", "test_ray.py", "test_service.py",
+                 "test_service_hostile.py", "test_service_faults.py", "test_vector_agents.py", "test_evaluate.py",
+                 "test_training_data.py", "test_service_sandbox.py", "test_imitation.py", "test_varibad.py",
+                 "test_service_browser.py")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
