@@ -10,7 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from mewa_bench.cli import app
-from mewa_bench.datasets.catalog import add_to_catalog, load_catalog
+from mewa_bench.datasets.catalog import add_to_catalog, load_catalog, recorded_build
+from mewa_bench.datasets.training_data import DEFAULT_VERSION
 from mewa_bench.protocol.results import read_results
 
 REPO = Path(__file__).resolve().parents[1]
@@ -103,7 +104,7 @@ def test_a_buildable_training_dataset_is_known_to_info_and_download(tmp_path: Pa
     flat = " ".join(info.output.split())
     assert info.exit_code == 0, info.output
     assert f"mewa-bench datasets build {name}" in flat and "learning-histories" in flat and "warning" not in flat
-    recorded = next(b for b in load_catalog(CATALOG)["builds"] if b["name"] == name)["sha256"]
+    recorded = recorded_build(load_catalog(CATALOG), name, DEFAULT_VERSION)["sha256"]  # the current version's
     assert recorded[:40] in flat.replace(" ", "")
     fetched = runner.invoke(app, ["datasets", "download", name, "--dir", str(tmp_path), "--catalog", str(CATALOG)])
     assert fetched.exit_code == 1 and f"datasets build {name}" in " ".join(fetched.output.split())

@@ -116,6 +116,7 @@ def test_recorded_frames_equal_the_rollout(recorded):
             obs, reward, terminated, truncated, _ = env.step(int(row.action))
             assert np.float32(reward) == row[df.columns.get_loc("next.reward")]
             assert bool(terminated) == bool(row[df.columns.get_loc("next.terminated")])
+            assert bool(truncated) == bool(row[df.columns.get_loc("next.truncated")])
             np.testing.assert_array_equal(np.asarray(row[df.columns.get_loc("next.observation.state")]), obs)
     assert seen == {(p, 0, k) for p in (0, 1) for k in range(10)}
 
@@ -135,6 +136,7 @@ def test_recorded_metadata(recorded):
     meta = load_metadata(root)
     assert meta["suite"] == {"name": "narrow-v1", "sha256": results["suite"]["sha256"]}
     assert meta["policy"]["sha256"] == results["agent"]["sha256"] and meta["policy"]["name"] == "delayed_fault_agent"
+    assert meta["policy"]["agent_args"] == {"fault": "none"} and "checkpoint" not in meta["policy"]  # what was set
     assert meta["seeds"] == [0] and meta["mewa_bench_version"] == results["package_version"]
     assert meta["lerobot_version"] == importlib.metadata.version("lerobot")
     assert [(u["pair"], u["first_episode_index"]) for u in meta["units"]] == [(0, 0), (1, 10)]

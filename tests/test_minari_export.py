@@ -56,6 +56,7 @@ def test_the_same_episodes_and_steps(exported, dataset) -> None:
         np.testing.assert_array_equal(episode.actions, rows["action"].to_numpy().reshape(-1))
         np.testing.assert_array_equal(episode.rewards.astype(np.float32), rows["next.reward"].to_numpy().reshape(-1))
         np.testing.assert_array_equal(episode.terminations, rows["next.terminated"].to_numpy().reshape(-1))
+        np.testing.assert_array_equal(episode.truncations, rows["next.truncated"].to_numpy().reshape(-1))
         assert episode.terminations[-1] or episode.truncations[-1]
         info = episode.infos
         assert len(info["luck_key"]) == len(rows) + 1

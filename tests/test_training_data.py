@@ -215,7 +215,22 @@ def test_episodes_replay_in_the_env_with_their_luck_keys(built):
                 obs, reward, terminated, truncated, _ = env.step(int(frame["action"]))
                 assert np.array_equal(obs, frame["next.observation.state"])
                 assert np.float32(reward) == frame["next.reward"] and terminated == frame["next.terminated"]
+                assert truncated == frame["next.truncated"]
             assert terminated or truncated
+
+
+def test_a_truncation_is_marked_where_the_step_limit_ends_an_episode(built):
+    """`next.truncated` is Gymnasium's: the episode's last frame when its T steps ran out before the task was done."""
+    truncations = 0
+    for (suite_name, _), root in built.items():
+        df, suite = frames(root), load_suite(suite_name)
+        horizon = np.array([suite.tasks[i].T for i in df["suite_task_index"]])
+        last = np.r_[df["episode_index"].to_numpy()[1:] != df["episode_index"].to_numpy()[:-1], True]
+        expected = last & (df["frame_index"].to_numpy() + 1 == horizon) & ~df["next.terminated"].to_numpy(bool)
+        np.testing.assert_array_equal(df["next.truncated"].to_numpy(bool), expected)
+        np.testing.assert_array_equal(df["next.done"].to_numpy(bool), df["next.terminated"].to_numpy(bool) | expected)
+        truncations += int(expected.sum())
+    assert truncations > 0  # the random tiers run out of steps
 
 
 def test_meta_episodes_and_blocks_are_marked(built):

@@ -3,14 +3,15 @@
 Per frame (one env step): `observation.state` float32[18] (the observation the action was chosen
 on), `action` int64[1] (the Discrete(4) action kept as an integer: LeRobot stores shape-(1,) int64 as
 a plain parquet column and hands it back as an int64 tensor), `next.reward` float32[1],
-`next.done` bool[1] (terminated or truncated), `next.terminated` bool[1],
+`next.done` bool[1] (terminated or truncated), `next.terminated` bool[1], `next.truncated` bool[1] (the
+step limit ended the episode first; Gymnasium's `truncated`),
 `next.observation.state` float32[18] (so the last transition of an episode is complete), and the
 meta-RL grouping columns `pair_index`, `worker_index`, `seed`, `episode_in_pair`,
 `task_index_in_suite`, `env_seed` (int64[1] each). In SAPIEN mode `observation.images.top` holds the
 image of `observation.state` (uint8 H x W x 3; PNG inside the parquet by default, or AV1 video).
 The LeRobot `task` string describes the pair's task, never its worker.
 
-Run provenance (suite name and hash, policy and its sha256, seeds, versions) and per-pair ground
+Run provenance (suite name and hash, policy, its sha256 and the agent arguments given, seeds, versions) and per-pair ground
 truth (task parameters, worker, exact float64 returns) go to `meta/mewa.json`: LeRobot rewrites
 `meta/info.json` itself and drops keys it does not know, so it cannot carry them.
 
@@ -86,6 +87,7 @@ def make_features(image_shape: tuple[int, int, int] | None, video: bool = False)
         "next.reward": scalar("float32"),
         "next.done": scalar("bool"),
         "next.terminated": scalar("bool"),
+        "next.truncated": scalar("bool"),
         "next.observation.state": {"dtype": "float32", "shape": (OBS_SIZE,), "names": state_names()},
         **{key: scalar("int64") for key in INDEX_COLUMNS},
     }
@@ -265,6 +267,7 @@ class LeRobotSink:
                 "next.reward": np.array([step.reward], dtype=np.float32),
                 "next.done": np.array([step.terminated or step.truncated], dtype=bool),
                 "next.terminated": np.array([step.terminated], dtype=bool),
+                "next.truncated": np.array([step.truncated], dtype=bool),
                 "next.observation.state": np.array(step.next_obs, dtype=np.float32),
                 **{key: _int(value) for key, value in constant.items()},
                 "task": task,

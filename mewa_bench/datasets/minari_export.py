@@ -3,8 +3,9 @@
 What maps where:
 - a Minari episode is one inner episode (LeRobot's `episode_index`, same order): `observations` the
   18 floats of every frame plus the last `next.observation.state` (L + 1 rows), `actions`, `rewards`
-  (the env's float64 values), `terminations` (`next.terminated`), `truncations` (`next.done` and not
-  terminated);
+  (the env's float64 values), `terminations` (`next.terminated`), `truncations` (`next.truncated`; a
+  dataset built before that column existed, version 1.0.0, gives `next.done` and not `next.terminated`,
+  the same values);
 - `infos` (L + 1 rows: the reset's, then each step's): the meta-episode fields `meta_episode_index`,
   `episode_in_meta_episode`, `block_index`, `episode_in_block`, `suite_task_index`, `worker`,
   `luck_key`, `behaviour_policy` (constant over the episode), `optimal_action` of each observation
@@ -117,13 +118,15 @@ def _episode_buffers(frames: dict[str, np.ndarray], tasks: list[Task]) -> Iterat
         infos["worker"] = np.repeat(frames["worker"][start:start + 1], n, axis=0)
         infos["optimal_action"] = np.r_[frames["optimal_action"][rows].reshape(-1), -1].astype(np.int64).tolist()
         terminated = frames["next.terminated"][rows].astype(bool)
+        truncated = (frames["next.truncated"][rows].astype(bool) if "next.truncated" in frames
+                     else frames["next.done"][rows].astype(bool) & ~terminated)
         yield buffer_type(
             id=int(episodes[start]),
             options={"task": task.to_dict(), "worker": worker, "luck_key": int(frames["luck_key"][start])},
             observations=np.vstack([frames["observation.state"][rows], frames["next.observation.state"][end - 1]]),
             actions=frames["action"][rows].reshape(-1).astype(np.int64),
             rewards=exact_rewards(task, frames["next.reward"][rows].reshape(-1)),
-            terminations=terminated, truncations=frames["next.done"][rows].astype(bool) & ~terminated,
+            terminations=terminated, truncations=truncated,
             infos=infos)
 
 

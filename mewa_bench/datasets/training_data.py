@@ -47,7 +47,7 @@ TRAINING_FORMAT_VERSION = 1
 MEWA_META_FILE = Path("meta") / "mewa.json"
 FPS = 10
 DEFAULT_FRAMES = 1_000_000
-DEFAULT_VERSION = "1.0.0"
+DEFAULT_VERSION = "1.1.0"  # 1.1.0: the `next.truncated` column (1.0.0 had the same frames without it)
 
 
 @dataclass(frozen=True)
@@ -217,7 +217,8 @@ def _frame_columns(spec: TrainingSpec, suite: Suite, rounds: list[_Round]) -> tu
                 obs[rows], next_obs[rows] = table.obs[p.state[rows]], table.obs[p.next_state[rows]]
         episode_in_meta = p.episode % h
         add = {"observation.state": obs, "action": p.action, "next.reward": p.reward.astype(np.float32),
-               "next.done": p.done, "next.terminated": p.terminated, "next.observation.state": next_obs,
+               "next.done": p.done, "next.terminated": p.terminated, "next.truncated": p.done & ~p.terminated,
+               "next.observation.state": next_obs,
                "optimal_action": rnd.labels, "meta_episode_index": first + meta_local,
                "episode_in_meta_episode": episode_in_meta, "block_index": episode_in_meta // PROTOCOL_EPISODES,
                "episode_in_block": episode_in_meta % PROTOCOL_EPISODES, "suite_task_index": meta_task,
@@ -250,6 +251,7 @@ def frame_features(expected: bool) -> dict[str, dict]:
         "observation.state": {"dtype": "float32", "shape": (18,), "names": state_names()},
         "action": {"dtype": "int64", "shape": (1,), "names": ["colour"]},
         "next.reward": scalar("float32"), "next.done": scalar("bool"), "next.terminated": scalar("bool"),
+        "next.truncated": scalar("bool"),
         "next.observation.state": {"dtype": "float32", "shape": (18,), "names": state_names()},
         "optimal_action": {"dtype": "int64", "shape": (1,), "names": ["colour"]},
         **{k: scalar("int64") for k in ("meta_episode_index", "episode_in_meta_episode", "block_index",

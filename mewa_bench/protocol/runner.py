@@ -214,7 +214,13 @@ def run_info(config: EvalConfig, suite: Suite, results: dict[str, Any]) -> RunIn
                    suite_sha256=suite.sha256, seeds=tuple(config.seeds), episodes_per_pair=config.episodes,
                    env_id=results["env"]["id"], env_version=results["env"]["version"],
                    package_version=results["package_version"], mode=results["env"]["mode"],
-                   extra={"privileged": config.privileged})
+                   extra={"privileged": config.privileged, **_given("agent_args", results["agent"].get("agent_args")),
+                          **_given("checkpoint", results["agent"].get("checkpoint"))})
+
+
+def _given(key: str, value: Any) -> dict[str, Any]:
+    """{key: value} when the value was given (not empty), else nothing: a run's records name only what was set."""
+    return {key: value} if value else {}
 
 
 def evaluate(config: EvalConfig, progress: Progress = lambda done, total: None,
