@@ -29,6 +29,13 @@ def load_traces() -> list[dict]:
     return json.loads(TRACES.read_text())["traces"]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def sb3_logs_in_pytest_tmp(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Stable-Baselines3 makes a logger folder per `learn()` (<tmp>/SB3-<time> unless SB3_LOGDIR names one): keep
+    them under pytest's own temporary folders, which pytest prunes, rather than in the machine's /tmp."""
+    os.environ.setdefault("SB3_LOGDIR", str(tmp_path_factory.mktemp("sb3-logs")))
+
+
 @pytest.fixture(scope="session")
 def traces() -> list[dict]:
     return load_traces()
