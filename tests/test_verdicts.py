@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from mewa_bench.protocol.scoring import Estimate, bootstrap_interval, stratified_estimates
-from mewa_bench.protocol.verdicts import FAMILY_ALPHA, Hypothesis, holm, judge, p_value, read_back
+from mewa_bench.protocol.verdicts import (ALGORITHMS, CHECKPOINTS, FAMILY_ALPHA, Hypothesis, holm, judge, p_value,
+                                          read_back, table_weights)
 
 
 def test_holm_steps_down_and_stops_at_the_first_failure() -> None:
@@ -16,6 +17,41 @@ def test_holm_steps_down_and_stops_at_the_first_failure() -> None:
     assert holm({"a": 0.013, "b": 0.001}, 0.05) == {"a": True, "b": True}
     assert holm({"a": 0.02, "b": 0.02, "c": 0.02}, 0.05) == {"a": False, "b": False, "c": False}  # 0.02 > 0.05/3
     assert holm({}, 0.05) == {}
+
+
+def test_weighted_holm_orders_by_p_over_weight_and_spends_what_the_rejected_tests_held() -> None:
+    w = {"a": 0.2, "b": 0.8}
+    # p / w: a 0.02 first (bar 0.05 x 0.2 / 1 = 0.01), then b alone (bar 0.05 x 0.8 / 0.8 = 0.05)
+    assert holm({"a": 0.004, "b": 0.02}, 0.05, w) == {"a": True, "b": True}
+    # p / w: b 0.025 first (bar 0.04), then a with the whole of what is left (bar 0.05)
+    assert holm({"a": 0.012, "b": 0.02}, 0.05, w) == {"a": True, "b": True}
+    # b first fails its bar (0.045 > 0.04): the procedure stops, a is never reached
+    assert holm({"a": 0.012, "b": 0.045}, 0.05, w) == {"a": False, "b": False}
+    rng = np.random.default_rng(7)
+    for _ in range(200):  # equal weights: the classic procedure, p_(j) <= alpha / (m - j + 1)
+        p = dict(enumerate(rng.uniform(0, 0.02, int(rng.integers(1, 30))) ** 2))
+        order = sorted(p, key=lambda k: (p[k], k))
+        passed = [p[k] <= 0.025 / (len(p) - j) for j, k in enumerate(order)]
+        first_failure = passed.index(False) if False in passed else len(p)
+        classic = {k: j < first_failure for j, k in enumerate(order)}
+        assert holm(p, 0.025) == classic == holm(p, 0.025, dict.fromkeys(p, 3.0))
+
+
+def test_each_table_holds_an_equal_share_and_a_few_run_algorithm_is_not_drowned_by_many_checkpoints() -> None:
+    weights = table_weights({"c1": CHECKPOINTS, "c2": CHECKPOINTS, "c3": CHECKPOINTS, "a": ALGORITHMS})
+    assert weights == pytest.approx({"c1": 1 / 6, "c2": 1 / 6, "c3": 1 / 6, "a": 1 / 2})
+    # narrow-v2's shape: 72 checkpoint tests, 34 of them clear, and an algorithm of 3 runs at p = 0.0005
+    # (t = 31 on 2 degrees of freedom); unweighted it would need 38 smaller p-values before it
+    p = {("run", i): (1e-12 if i < 34 else 0.4) for i in range(72)} | {("algorithm", j): 0.3 for j in range(13)}
+    p[("algorithm", "ad")] = 0.0005
+    tables = {k: ALGORITHMS if k[0] == "algorithm" else CHECKPOINTS for k in p}
+    assert holm(p, FAMILY_ALPHA)[("algorithm", "ad")] is False
+    weighted = holm(p, FAMILY_ALPHA, table_weights(tables))
+    assert weighted[("algorithm", "ad")] is True
+    assert [k for k in p if weighted[k] != holm(p, FAMILY_ALPHA)[k]] == [("algorithm", "ad")]
+    e = bootstrap_interval(0.1, np.random.default_rng(0).normal(0, 0.01, 300), 5, 4)
+    with pytest.raises(ValueError, match="share the key"):  # one key, one test, in one table
+        judge([Hypothesis("x", e, 0.0, CHECKPOINTS), Hypothesis("x", e, 0.0, ALGORITHMS)])
 
 
 def test_a_p_value_agrees_with_the_interval_printed_beside_it() -> None:

@@ -19,8 +19,9 @@ DEFINITIONS = (
     ("adaptability", "mean(s_10 - s_1): the gain from the first to the tenth episode with the same worker"),
     ("P(X > Y)", "probability of improvement: the chance that a run of X beats a run of Y on a pair "
                  "(over pairs, ties 1/2)"),
-    ("verdicts", "one-sided tests decided together by Holm's procedure over every test shown here (per-run "
-                 "checkpoints, algorithms, X better both ways): at most 2.5% chance of any false yes"),
+    ("verdicts", "one-sided tests decided together by Holm's weighted procedure over every test shown here "
+                 "(per-run checkpoints, algorithms, X better both ways; each of the three an equal share): at "
+                 "most 2.5% chance of any false yes"),
 )
 
 

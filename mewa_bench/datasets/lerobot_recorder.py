@@ -11,8 +11,8 @@ meta-RL grouping columns `pair_index`, `worker_index`, `seed`, `episode_in_pair`
 image of `observation.state` (uint8 H x W x 3; PNG inside the parquet by default, or AV1 video).
 The LeRobot `task` string describes the pair's task, never its worker.
 
-Run provenance (suite name and hash, policy, its sha256 and the agent arguments given, seeds, versions) and per-pair ground
-truth (task parameters, worker, exact float64 returns) go to `meta/mewa.json`: LeRobot rewrites
+Run provenance (suite name and hash, policy, its sha256 and the agent arguments given, seeds, versions) and
+per-pair ground truth (task parameters, worker, exact float64 returns) go to `meta/mewa.json`: LeRobot rewrites
 `meta/info.json` itself and drops keys it does not know, so it cannot carry them.
 
 On disk (LeRobot v3.0; frames of many episodes share a file, `meta/episodes` says where each starts):

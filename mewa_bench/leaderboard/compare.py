@@ -28,7 +28,7 @@ from mewa_bench.protocol.config import default_seeds
 from mewa_bench.protocol.results import ResultsError, read_results
 from mewa_bench.protocol.run_info import RunInfoError, read_run_info
 from mewa_bench.protocol.scoring import Estimate, reference_line_cells
-from mewa_bench.protocol.verdicts import Hypothesis
+from mewa_bench.protocol.verdicts import COMPARISONS, Hypothesis
 
 BY_OPTION, BY_RUN_JSON, BY_FOLDER, BY_AGENT = ("--algorithm", "run.json", "folder name",
                                                "agent name in the results file")
@@ -176,7 +176,7 @@ def better_key(x: str, y: str) -> tuple[str, str, str]:
 
 def pairwise_tests(comparison: AlgorithmComparison) -> list[Hypothesis]:
     """"X better than Y" for every ordered pair: P(X > Y) > 1/2 (P(Y > X) = 1 - P(X > Y): one estimate, two sides)."""
-    return [Hypothesis(better_key(x, y), p, 0.5) for (x, y), p in comparison.improvement.items()]
+    return [Hypothesis(better_key(x, y), p, 0.5, COMPARISONS) for (x, y), p in comparison.improvement.items()]
 
 
 def compare(items: Sequence[str], suite: str | None = None, algorithms: Sequence[str] = (),

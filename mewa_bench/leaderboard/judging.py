@@ -8,7 +8,8 @@ The family of a board (or of a comparison, or of the service's board) is every o
   conditional on that checkpoint; a multi-run algorithm also says in how many of its runs the
   checkpoint verdict "adapts" is yes;
 - whatever else the display adds (`compare`: "X better" for every two algorithms, both ways).
-Holm's step-down over the family keeps the chance of any false "yes" at most FAMILY_ALPHA.
+Holm's weighted step-down over the family, each table (checkpoint rows, algorithms of several runs,
+comparisons) an equal share, keeps the chance of any false "yes" at most FAMILY_ALPHA.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from typing import TYPE_CHECKING, Hashable, Mapping, Sequence
 
 from mewa_bench.leaderboard.board import Row
 from mewa_bench.protocol.scoring import Estimate, gap_won
-from mewa_bench.protocol.verdicts import FAMILY_ALPHA, PROCEDURE, Family, Hypothesis, judge, read_back
+from mewa_bench.protocol.verdicts import (ALGORITHMS, CHECKPOINTS, FAMILY_ALPHA, PROCEDURE, Family, Hypothesis, judge,
+                                          read_back)
 
 if TYPE_CHECKING:
     from mewa_bench.leaderboard.algorithms import AlgorithmRow
@@ -72,8 +74,11 @@ def board_tests(runs: Mapping[str, Row], algorithms: Sequence[AlgorithmRow], pai
         tests += [Hypothesis(run_key(name, ADAPTS), estimates["adaptability"], 0.0),
                   Hypothesis(run_key(name, BEATS), estimates["gap_won"], 0.0)]
     for a in algorithms:
-        key = (lambda v: run_key(a.run_names[0], v)) if a.within_run else (lambda v: algorithm_key(a.algorithm, v))
-        tests += [Hypothesis(key(ADAPTS), a.adaptability, 0.0), Hypothesis(key(BEATS), a.gap_won, 0.0)]
+        if a.within_run:  # a one-run algorithm's tests are its checkpoint's
+            key, table = (lambda v: run_key(a.run_names[0], v)), CHECKPOINTS
+        else:
+            key, table = (lambda v: algorithm_key(a.algorithm, v)), ALGORITHMS
+        tests += [Hypothesis(key(ADAPTS), a.adaptability, 0.0, table), Hypothesis(key(BEATS), a.gap_won, 0.0, table)]
     return tests
 
 
@@ -110,13 +115,17 @@ def _counted(n: int, noun: str) -> str:
 
 
 def family_caption(family: Family, checkpoints: int, algorithms: int, what: str = "board") -> str:
-    """The sentence naming the verdicts' procedure and family."""
+    """The sentence naming the verdicts' procedure, its family and the tables' shares of it."""
+    sizes = family.table_sizes
+    parts = [f"the {n} tests of the {table}" if i == 0 else f"the {n} of the {table}"
+             for i, (table, n) in enumerate(sizes.items())]
+    share = {2: "half", 3: "a third"}.get(len(sizes), f"1/{len(sizes)}")
+    shares = "" if len(sizes) < 2 else f"; {', '.join(parts[:-1])} and {parts[-1]} weigh {share} of the family each"
     return (f"Verdicts (adapts: adaptability > 0; beats best fixed: gap won > 0) are one-sided tests on each row's "
             f"95% interval statistic, decided together by {PROCEDURE} procedure over all {family.size} tests this "
             f"{what} shows ({_counted(checkpoints, 'checkpoint row')} and {_counted(algorithms, 'algorithm')} of "
-            f"several runs, two tests "
-            f"each; a one-run algorithm's are its checkpoint's): the chance that the {what} shows any false \"yes\" "
-            f"is at most {family.alpha:.1%}. \"no\" means not shown at that level.")
+            f"several runs, two tests each; a one-run algorithm's are its checkpoint's){shares}: the chance that the "
+            f"{what} shows any false \"yes\" is at most {family.alpha:.1%}. \"no\" means not shown at that level.")
 
 
 __all__ = ["ADAPTS", "BEATS", "FAMILY_ALPHA", "Judged", "checkpoint_estimates", "family_caption", "judge_board",
