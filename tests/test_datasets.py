@@ -91,6 +91,7 @@ def test_recorded_frames_equal_the_rollout(recorded):
     units = {(u["pair"], u["seed"]): u for u in results["units"]}
     episodes = df.groupby("episode_index", sort=True)
     assert len(episodes) == 20
+    assert df["next.truncated"].astype(bool).any()  # random play runs out of steps: both episode ends are checked
     seen = set()
     for _, ep in episodes:
         pair, seed, k = (int(ep[c].iloc[0]) for c in ("pair_index", "seed", "episode_in_pair"))

@@ -15,8 +15,9 @@ from mewa_bench.datasets import build_training_dataset, training_spec
 from mewa_bench.design.suites import load_suite
 
 pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
-SPEC = replace(training_spec("narrow-v2-train-random-task-specific", 300), meta_batch=2)  # two meta-episodes of ten
-DATASET_ID = SPEC.dataset_id  # a 300-frame build is its own dataset: mewa/narrow-v2-train-random-task-specific-frames300-v1
+# Two meta-episodes of ten episodes of random play, which runs out of steps often (truncations to check).
+SPEC = replace(training_spec("narrow-v2-train-random", 300), meta_batch=2)
+DATASET_ID = SPEC.dataset_id  # a 300-frame build is its own dataset: mewa/narrow-v2-train-random-frames300-v1
 
 
 @pytest.fixture(scope="module")
@@ -88,7 +89,7 @@ def test_the_metadata_is_minaris_own(exported, dataset) -> None:
 
     meta = dataset.storage.metadata
     mewa = json.loads((exported[0] / "meta" / "mewa.json").read_text())
-    assert meta["algorithm_name"] == "random-task-specific"
+    assert meta["algorithm_name"] == "random"
     assert dataset.spec.env_spec.id == "mewa/MEWA-v0" and dataset.spec.env_spec.kwargs["tasks"][0]["name"] == \
         load_suite("narrow-v2").tasks[0].name  # the data's distribution: the suite's tasks, meta-train workers
     assert minari.__version__ in meta["minari_version"]
@@ -110,3 +111,17 @@ def test_an_existing_export_is_never_overwritten(exported) -> None:
     assert result.exit_code == 1 and "already exists" in result.output
     result = CliRunner().invoke(app, ["datasets", "export", "no-such-dataset", "--out", str(exported[1])])
     assert result.exit_code == 1 and "download it first" in result.output
+
+
+def test_a_build_from_before_next_truncated_exports_the_same_truncations(exported) -> None:
+    """A version 1.0.0 build has no `next.truncated`: its truncations are `next.done` and not `next.terminated`,
+    the values the column holds."""
+    from mewa_bench.datasets.minari_export import _episode_buffers, _frames
+
+    frames, tasks = _frames(exported[0]), load_suite("narrow-v2").tasks
+    older = {k: v for k, v in frames.items() if k != "next.truncated"}
+    now, before = list(_episode_buffers(frames, tasks)), list(_episode_buffers(older, tasks))
+    assert sum(int(np.sum(b.truncations)) for b in now) > 0  # the data holds truncations to compare
+    for a, b in zip(now, before, strict=True):
+        np.testing.assert_array_equal(a.truncations, b.truncations)
+        np.testing.assert_array_equal(a.terminations, b.terminations)
