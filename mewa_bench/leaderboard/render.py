@@ -36,8 +36,8 @@ EXPLANATION = (
                    "the same seeds as control variates (unbiased, far less noise); CIs resample seeds within "
                    "each pair. IQM: rliable's interquartile mean, over the pair means (docs/protocol.md)."),
     ("verdicts", f"adapts = adaptability > 0; beats best fixed = gap won > 0. One-sided tests on each row's own "
-                 f"interval statistic, decided together by {PROCEDURE} procedure over every test a board shows (the "
-                 f"checkpoint rows' and the algorithms' half of the family each), so "
+                 f"interval statistic, decided together by {PROCEDURE} procedure over every test a board shows (on a "
+                 f"board with algorithms of several runs, theirs and the checkpoint rows' half of the family each), so "
                  f"that the chance of any false \"yes\" on a board is at most {FAMILY_ALPHA:.1%} (a fixed policy is "
                  f"not called adaptive because a board has many rows)."),
     ("skill", "(S - S_rts) / (1 - S_rts), with S the mean score and S_rts that of the random task-specific "
