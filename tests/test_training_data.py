@@ -18,6 +18,7 @@ from mewa_bench.datasets import (DatasetError, TrainingDataError, add_to_catalog
                                  check_training_dataset, download, load_catalog, load_training_dataset, pack_dataset,
                                  training_spec)
 from mewa_bench.datasets import training_data
+from mewa_bench.datasets.training_data import dataset_suite, training_suite
 from mewa_bench.datasets.bulk_writer import write_lerobot_dataset
 from mewa_bench.design.exact import expected_returns
 from mewa_bench.design.policies import toptimal_family
@@ -26,26 +27,28 @@ from mewa_bench.envs.mewa_env import MewaEnv
 from mewa_bench.game.table import transition_table
 from mewa_bench.protocol.config import default_seeds, env_seed
 
-SMALL = {"random": 600, "random-task-specific": 600, "learning-histories": 1, "expert": 1, "task-inferring-histories": 1}
+SMALL = {"random": 600, "random-task-specific": 600, "learning-histories": 1, "expert": 1, "task-inferring-histories": 1,
+         "generated-tasks": 1}
+GENERATED = ("wide-v2", "generated-tasks")
 
 
 pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
 
 
 def small_spec(suite: str, tier: str):
-    """A few meta-episodes of a tier (two per round)."""
+    """A few meta-episodes of a tier (two per round; a pool of four generated tasks where it has one)."""
     spec = training_spec(f"{suite}-train-{tier}", SMALL[tier])
-    return replace(spec, meta_batch=2, history_episodes=20)
+    return replace(spec, meta_batch=2, history_episodes=20, generated_tasks=min(spec.generated_tasks, 4))
 
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     """One small dataset per tier on narrow-v2, and on wide-v2 (several tasks) the random task-specific tier and the
-    task-inferring histories (whose learner must tell its look-alike tasks apart)."""
+    task-inferring histories (whose learner must tell its look-alike tasks apart), also on generated tasks."""
     out = tmp_path_factory.mktemp("training")
     roots = {}
     tiers = ("random", "random-task-specific", "learning-histories", "expert")
-    wide = [("wide-v2", "random-task-specific"), ("wide-v2", "task-inferring-histories")]
+    wide = [("wide-v2", "random-task-specific"), ("wide-v2", "task-inferring-histories"), GENERATED]
     for suite, tier in [("narrow-v2", t) for t in tiers] + wide:
         roots[(suite, tier)] = out / f"{suite}-{tier}"
         build_training_dataset(small_spec(suite, tier), roots[(suite, tier)], jobs=1)
@@ -60,6 +63,11 @@ def frames(root: Path) -> pd.DataFrame:
 
 def meta(root: Path) -> dict:
     return json.loads((root / "meta" / "mewa.json").read_text())
+
+
+def tasks_of(root: Path) -> tuple:
+    """The tasks a dataset's `suite_task_index` indexes (its suite's, or its generated ones)."""
+    return dataset_suite(meta(root), root).tasks
 
 
 def curated() -> np.ndarray:
@@ -91,6 +99,27 @@ def test_no_frame_has_a_curated_worker_or_a_protocol_luck_key(built):
         m = meta(root)
         assert m["kind"] == "training" and m["suite"]["name"] == key[0]
         assert len(m["meta_episodes"]) == df["meta_episode_index"].nunique()
+
+
+def test_generated_tasks_are_the_wide_generators_drawn_from_the_datasets_seed(built):
+    root = built[GENERATED]
+    m, df, public = meta(root), frames(root), load_suite("wide-v2")
+    tasks = tasks_of(root)
+    assert m["spec"]["generated_tasks"] == len(tasks) == 4 and m["suite"]["sha256"] == public.sha256
+    assert [t.name.split("-")[:2] for t in tasks] == [["generated", f"{i:03d}"] for i in range(4)]
+    assert set(df["suite_task_index"]) <= set(range(4))
+    assert "generated tasks" in m["worker_distribution"]["task_choice"] and "generator drew" in m["columns"]["suite_task_index"]
+    eq1 = {(t.N, t.M): t.rewards for t in public.tasks}  # Eq. 1's rewards depend on N and M only
+    assert any((t.N, t.M) in eq1 for t in tasks)
+    for task in tasks:
+        assert (task.N, task.M) not in eq1 or np.allclose(task.rewards, eq1[(task.N, task.M)], rtol=0, atol=1e-11)
+        assert [f["name"] for f in task.to_dict()["worker_distribution"]["families"]] == ["paper", "overloaded"]
+        assert sum(task.worker_blocks) == 8 and task.M <= task.K
+    spec = small_spec(*GENERATED)
+    assert training_suite(replace(spec, generated_tasks=6)).tasks[:4] == tasks  # a larger pool starts with them
+    assert "generated_tasks" not in meta(built[("wide-v2", "task-inferring-histories")])["spec"]  # bytes as before
+    with pytest.raises(ValueError, match="narrow-v2 has one task"):
+        training_suite(replace(small_spec("narrow-v2", "random"), generated_tasks=3))
 
 
 def test_a_dataset_from_a_test_worker_is_refused(tmp_path, monkeypatch):
@@ -156,13 +185,14 @@ def _independent_q(task, worker: np.ndarray, horizon: int) -> np.ndarray:
 
 def test_stored_optimal_actions_are_the_exact_optimum(built):
     rng = np.random.default_rng(5)
-    for key in (("narrow-v2", "random"), ("narrow-v2", "learning-histories"), ("wide-v2", "random-task-specific")):
+    for key in (("narrow-v2", "random"), ("narrow-v2", "learning-histories"), ("wide-v2", "random-task-specific"),
+                GENERATED):
         root = built[key]
-        df, suite = frames(root), load_suite(key[0])
+        df, tasks = frames(root), tasks_of(root)
         checked = 0
         for m in rng.choice(df["meta_episode_index"].unique(), size=2, replace=False):
             rows = df[df["meta_episode_index"] == m]
-            task = suite.tasks[int(rows["suite_task_index"].iloc[0])]
+            task = tasks[int(rows["suite_task_index"].iloc[0])]
             q = _independent_q(task, np.asarray(rows["worker"].iloc[0]), task.T)
             table = transition_table(task)
             index = {o.tobytes(): i for i, o in enumerate(table.obs)}
@@ -177,23 +207,23 @@ def test_stored_optimal_actions_are_the_exact_optimum(built):
 def test_stored_reference_scores_are_the_exact_engines(built):
     for key, root in built.items():
         m, df = meta(root), frames(root)
-        suite = load_suite(key[0])
+        tasks = tasks_of(root)
         rand, best = [], []
         for record in m["meta_episodes"]:
-            task = suite.tasks[record["task"]]
+            task = tasks[record["task"]]
             values = expected_returns(task, (*toptimal_family(task.N), "random"), [record["worker"]])[:, 0]
             rand.append(values[-1])
             best.append(values[:-1].max())
             assert abs(record["max_expected"] - values[:-1].max()) < 1e-11
         assert abs(m["ref_min_score"] - np.mean(rand)) < 1e-11 and abs(m["ref_max_score"] - np.mean(best)) < 1e-11
-        if key[1] in ("expert", "task-inferring-histories"):
+        if key[1] in ("expert", "task-inferring-histories", GENERATED[1]):
             assert "expected_return" not in df.columns  # an adaptive agent's behaviour has no fixed value
             continue
         first = df.groupby(["meta_episode_index", "episode_in_meta_episode"]).first()
         policies = m["behaviour"]["policies"]
         for (meta_index, _), frame in first.sample(n=6, random_state=2).iterrows():
             record = m["meta_episodes"][meta_index]
-            task = suite.tasks[record["task"]]
+            task = tasks[record["task"]]
             policy = policies[record["task"]][int(frame["behaviour_policy"])]
             exact = expected_returns(task, (policy,), [record["worker"]])[0, 0]
             assert abs(frame["expected_return"] - exact) < 1e-11
@@ -202,12 +232,12 @@ def test_stored_reference_scores_are_the_exact_engines(built):
 
 def test_episodes_replay_in_the_env_with_their_luck_keys(built):
     for key in (("narrow-v2", "random"), ("narrow-v2", "expert"), ("wide-v2", "random-task-specific"),
-                ("wide-v2", "task-inferring-histories")):
-        df, suite = frames(built[key]), load_suite(key[0])
-        env = MewaEnv(task=suite.tasks[0], worker=[0.1] * suite.tasks[0].N)
+                ("wide-v2", "task-inferring-histories"), GENERATED):
+        df, tasks = frames(built[key]), tasks_of(built[key])
+        env = MewaEnv(task=tasks[0], worker=[0.1] * tasks[0].N)
         for episode in (0, int(df["episode_index"].max())):
             rows = df[df["episode_index"] == episode]
-            task = suite.tasks[int(rows["suite_task_index"].iloc[0])]
+            task = tasks[int(rows["suite_task_index"].iloc[0])]
             obs, _ = env.reset(options={"task": task, "worker": list(rows["worker"].iloc[0][: task.N]),
                                         "luck_key": int(rows["luck_key"].iloc[0])})
             for _, frame in rows.iterrows():
@@ -222,9 +252,9 @@ def test_episodes_replay_in_the_env_with_their_luck_keys(built):
 def test_a_truncation_is_marked_where_the_step_limit_ends_an_episode(built):
     """`next.truncated` is Gymnasium's: the episode's last frame when its T steps ran out before the task was done."""
     truncations = 0
-    for (suite_name, _), root in built.items():
-        df, suite = frames(root), load_suite(suite_name)
-        horizon = np.array([suite.tasks[i].T for i in df["suite_task_index"]])
+    for root in built.values():
+        df, tasks = frames(root), tasks_of(root)
+        horizon = np.array([tasks[i].T for i in df["suite_task_index"]])
         last = np.r_[df["episode_index"].to_numpy()[1:] != df["episode_index"].to_numpy()[:-1], True]
         expected = last & (df["frame_index"].to_numpy() + 1 == horizon) & ~df["next.terminated"].to_numpy(bool)
         np.testing.assert_array_equal(df["next.truncated"].to_numpy(bool), expected)
@@ -255,7 +285,7 @@ def _tree(root: Path) -> dict[str, str]:
 
 
 def test_a_rebuild_gives_the_same_bytes_and_sha256(built, tmp_path):
-    for key in (("narrow-v2", "learning-histories"), ("wide-v2", "random-task-specific")):
+    for key in (("narrow-v2", "learning-histories"), ("wide-v2", "random-task-specific"), GENERATED):
         again = tmp_path / f"{key[0]}-{key[1]}"
         build_training_dataset(small_spec(*key), again, jobs=2)  # parallel exact values: the same bytes
         assert _tree(again) == _tree(built[key])

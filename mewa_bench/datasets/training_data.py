@@ -5,7 +5,9 @@ A dataset is named `<suite>-train-<tier>` (see `TRAINING_DATASETS`) and built by
 meta-train worker) each, played by the tier's behaviour (`tiers`) with luck keys disjoint from the
 protocol's (`training_keys`), every frame labelled with the exact known-worker optimal action
 (`labels`), written in bulk as a LeRobot v3.0 dataset (`bulk_writer`) with `meta/mewa.json`
-(its own metadata; `minari_export` writes Minari's). Workers and keys are checked when the dataset is built and
+(its own metadata; `minari_export` writes Minari's). A wide suite's datasets may play tasks its
+generator draws from the dataset's seed instead of the suite's ten (`generated_tasks`: to learn to adapt to
+a task never seen), listed in meta/mewa.json. Workers and keys are checked when the dataset is built and
 again when it is loaded (`load_training_dataset`) or downloaded: one curated worker of any suite or
 one protocol luck key and the dataset is refused.
 
@@ -27,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from mewa_bench.datasets.expert_rollout import MapTasks
+from mewa_bench.datasets.generated_tasks import generated_tasks, with_tasks
 from mewa_bench.datasets.labels import optimal_labels
 from mewa_bench.datasets.tiers import (ADAPTIVE, PROTOCOL_EPISODES, TIERS, TierRun, behaviour_source,
                                        episodes_per_worker, expected_of_episodes, file_sha256, play_tier,
@@ -41,6 +44,7 @@ from mewa_bench.game.distributions import meta_train_spec, worker_families
 from mewa_bench.game.normalise import normalised_return
 from mewa_bench.game.palette import NUM_COLORS
 from mewa_bench.game.table import transition_table
+from mewa_bench.game.task import Task
 
 TRAINING_FORMAT = "mewa-bench-training-data"
 TRAINING_FORMAT_VERSION = 1
@@ -63,6 +67,7 @@ class TrainingSpec:
     meta_batch: int = 64  # meta-episodes (workers) per round
     history_episodes: int = 50  # episodes per worker in the history tiers
     expert_agent: str = "bayes-explorer"  # the stronger adaptive reference (most of the v2 suites' gaps)
+    generated_tasks: int = 0  # 0: the suite's tasks; n: n tasks its generator draws from this dataset's seed
 
     @property
     def built_name(self) -> str:
@@ -99,6 +104,10 @@ def _registry() -> dict[str, TrainingSpec]:
     for s in ALL_SUITES:  # a pair's 10 episodes from scratch per history (what AD's windows read), many histories
         name = f"{s}-train-task-inferring-histories"
         out[name] = TrainingSpec(name, s, "task-inferring-histories", frames=3_000_000, history_episodes=10)
+    for s in ("wide-v1", "wide-v2"):  # the same learner on tasks the suite never lists: to adapt to a new task
+        name = f"{s}-train-generated-tasks"
+        out[name] = TrainingSpec(name, s, "task-inferring-histories", frames=3_000_000, history_episodes=10,
+                                 meta_batch=8192, generated_tasks=200)  # one round: each task's learner model once
     mini = TrainingSpec("narrow-v2-train-random-task-specific-mini", "narrow-v2", "random-task-specific",
                         frames=10_000, meta_batch=16)
     out[mini.name] = mini
@@ -114,6 +123,16 @@ def training_spec(name: str, frames: int | None = None) -> TrainingSpec:
         raise TrainingDataError(f"unknown training dataset {name!r}; known: {', '.join(sorted(TRAINING_DATASETS))}")
     spec = TRAINING_DATASETS[name]
     return spec if frames is None else replace(spec, frames=int(frames))
+
+
+def training_suite(spec: TrainingSpec) -> Suite:
+    """The suite a dataset is built for, with the tasks it plays: the suite's own, or `spec.generated_tasks` tasks
+    its generator draws from the dataset's seed (`generated_tasks`)."""
+    suite = load_suite(spec.suite)
+    if not spec.generated_tasks:
+        return suite
+    rng = np.random.default_rng(_seed_int(f"{spec.seed_id}/{spec.seed}/tasks"))
+    return with_tasks(suite, generated_tasks(suite, spec.generated_tasks, rng))
 
 
 def _seed_int(text: str) -> int:
@@ -285,6 +304,18 @@ COLUMN_DOCS = {
 }
 
 
+GENERATED_TASK_INDEX = ("index of the task in meta/mewa.json `tasks`: tasks the suite's generator drew from the "
+                        "dataset's seed, not the suite's own")
+
+
+def _spec_record(spec: TrainingSpec) -> dict[str, Any]:
+    """The spec as meta/mewa.json records it (`generated_tasks` only when there are some, as before it existed)."""
+    record = asdict(spec)
+    if not spec.generated_tasks:
+        del record["generated_tasks"]
+    return record
+
+
 def _distribution(suite: Suite) -> list[dict[str, Any]]:
     """Each task's meta-train worker distribution, as its suite lists it."""
     out = []
@@ -316,13 +347,14 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
     optimum = np.concatenate([r.optimum for r in rounds])
     source = behaviour_source(spec.tier, spec.expert_agent)
     h = spec.episodes_per_worker
+    whose = "dataset's generated" if spec.generated_tasks else "suite's"
     lengths = per_episode["lengths"]
     expected = per_episode["expected"]
     n = len(task_idx)
     return {
         "format": TRAINING_FORMAT, "format_version": TRAINING_FORMAT_VERSION, "kind": "training",
         "dataset_id": spec.dataset_id, "name": spec.built_name, "version": spec.version,
-        "spec": asdict(spec),
+        "spec": _spec_record(spec),
         "suite": {"name": suite.name, "sha256": suite.sha256},
         "eval_env_spec": {"env_id": "mewa/MEWA-v0", "env_version": ENV_VERSION, "suite": suite.name,
                           "suite_sha256": suite.sha256, "protocol_version": PROTOCOL_VERSION,
@@ -334,12 +366,15 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
                       "policies": [list(tier_policies(spec.tier, task.N)) for task in suite.tasks],
                       "expert_agent": spec.expert_agent if spec.tier == "expert" else None},
         "worker_distribution": {"name": "meta-train", "tasks": _distribution(suite),
-                                "task_choice": "uniform over the suite's tasks, per meta-episode"},
+                                "task_choice": f"uniform over the {whose} tasks, per meta-episode"},
         "seeds": {"build_seed": spec.seed,
                   "worker_rng": f"numpy default_rng(sha256('{spec.seed_id}/{spec.seed}') >> 1)",
                   "luck_keys": "sha256('mewa-bench/training-data/"
                                + ("<dataset_id>" if spec.seed_id == spec.dataset_id else spec.seed_id)
-                               + "/<meta-episode>/<episode>') >> 1"},
+                               + "/<meta-episode>/<episode>') >> 1",
+                  **({"generated_tasks": f"design.generate.sample_wide_task with numpy default_rng(sha256("
+                                         f"'{spec.seed_id}/{spec.seed}/tasks') >> 1), then Eq. 1 (designed)"}
+                     if spec.generated_tasks else {})},
         "checks": {"curated_workers": f"none of the {len(ALL_SUITES)} shipped suites' curated workers; "
                                       "every worker in its task's meta-train support",
                    "nearest_curated_worker_linf": round_floats(nearest),
@@ -352,7 +387,8 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
         "total_steps": frames,
         "mewa_bench_version": __version__, "lerobot_version": lerobot_version,
         "build_command": spec.build_command(),
-        "columns": {k: v for k, v in COLUMN_DOCS.items() if expected is not None or not k.startswith("expected")},
+        "columns": {k: GENERATED_TASK_INDEX if k == "suite_task_index" and spec.generated_tasks else v
+                    for k, v in COLUMN_DOCS.items() if expected is not None or not k.startswith("expected")},
         "tasks": [t.to_dict() for t in suite.tasks],
         "meta_episodes": [{"task": int(task_idx[m]), "worker": workers[m, : suite.tasks[int(task_idx[m])].N].tolist(),
                            "random": round_floats(float(random_value[m])),
@@ -384,7 +420,7 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
         raise TrainingDataError(f"{root} already exists; pick a new folder")
     if spec.tier not in TIERS:
         raise TrainingDataError(f"{spec.name}: unknown tier {spec.tier!r}; expected one of {', '.join(TIERS)}")
-    suite = load_suite(spec.suite)
+    suite = training_suite(spec)
     rng = np.random.default_rng(_seed_int(f"{spec.seed_id}/{spec.seed}"))
     clock = [time.perf_counter()]
     played = []
@@ -496,6 +532,18 @@ def read_training_meta(root: Path | str) -> dict[str, Any]:
     return meta
 
 
+def dataset_suite(meta: dict[str, Any], root: Path | str) -> Suite:
+    """The installed suite a dataset was built for (the same sha256, else an error), with the tasks its frames play
+    (`suite_task_index` indexes them): the suite's own, or the generated tasks that its meta/mewa.json lists."""
+    suite = load_suite(meta["suite"]["name"])
+    if suite.sha256 != meta["suite"]["sha256"]:
+        raise TrainingDataError(f"{root}: built for {suite.name} sha256 {meta['suite']['sha256']}, the installed "
+                                f"suite is {suite.sha256}")
+    if meta["spec"].get("generated_tasks"):
+        return with_tasks(suite, tuple(Task.from_dict(t) for t in meta["tasks"]))
+    return suite
+
+
 def check_training_dataset(root: Path | str) -> dict[str, Any]:
     """Re-check a training dataset on disk: every frame's worker and luck key, and the metadata's workers.
 
@@ -505,10 +553,7 @@ def check_training_dataset(root: Path | str) -> dict[str, Any]:
 
     root = Path(root)
     meta = read_training_meta(root)
-    suite = load_suite(meta["suite"]["name"])
-    if suite.sha256 != meta["suite"]["sha256"]:
-        raise TrainingDataError(f"{root}: built for {suite.name} sha256 {meta['suite']['sha256']}, the installed "
-                                f"suite is {suite.sha256}")
+    suite = dataset_suite(meta, root)
     files = sorted((root / "data").rglob("*.parquet"))
     if not files:
         raise TrainingDataError(f"{root}: no frames under data/")

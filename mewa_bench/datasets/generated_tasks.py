@@ -1,0 +1,37 @@
+"""Training tasks beyond a suite's own: tasks that a wide suite's generator samples from a dataset's seed.
+
+A wide suite's ten tasks are ten draws of its generator (SPEC section 4). A model trained on those ten alone
+learns to tell them apart, not to adapt to a task it has never seen, and a hidden twin of the suite draws
+ten others (docs/baselines.md). A pool of tasks drawn the same way (N, colours, sub-goal order, K, M and
+worker blocks by `design.generate.sample_wide_task`; Eq. 1's rewards and, on v2, the two worker families
+by `design.generate.designed`) from the training dataset's own seed is data for that. Unlike the suite's
+tasks, a pool's are not screened for adaptivity (that needs every candidate worker's exact values); a
+learner still has to find the worker on each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from mewa_bench.design.generate import designed, sample_wide_task
+from mewa_bench.design.suites import Suite
+from mewa_bench.game.task import Task
+
+
+def generated_tasks(suite: Suite, count: int, rng: np.random.Generator) -> tuple[Task, ...]:
+    """`count` tasks drawn by `suite`'s generator with `rng`, named `generated-<i>-n<N>-k<K>-m<M>`."""
+    if suite.content.get("suite") != "wide":
+        raise ValueError(f"{suite.name} has one task, not a task generator: generated tasks need a wide suite")
+    families = int(suite.content["version"]) >= 2
+    out = []
+    for i in range(count):
+        task, _ = designed(sample_wide_task(rng, i), families)
+        out.append(Task.from_dict({**task.to_dict(), "name": f"generated-{i:03d}-n{task.N}-k{task.K}-m{task.M}"}))
+    return tuple(out)
+
+
+def with_tasks(suite: Suite, tasks: tuple[Task, ...]) -> Suite:
+    """`suite` (its name and hash: what the data is for) with another task list and no curated pairs."""
+    return dataclasses.replace(suite, tasks=tuple(tasks), pairs=())
