@@ -104,6 +104,9 @@ def test_a_buildable_training_dataset_is_known_to_info_and_download(tmp_path: Pa
     flat = " ".join(info.output.split())
     assert info.exit_code == 0, info.output
     assert f"mewa-bench datasets build {name}" in flat and "learning-histories" in flat and "warning" not in flat
+    assert "tasks the suite's" in flat
+    generated = runner.invoke(app, ["datasets", "info", "wide-v2-train-generated-tasks", "--catalog", str(CATALOG)])
+    assert "tasks 200 that the suite's generator draws (not the suite's)" in " ".join(generated.output.split())
     recorded = recorded_build(load_catalog(CATALOG), name, DEFAULT_VERSION)["sha256"]  # the current version's
     assert recorded[:40] in flat.replace(" ", "")
     fetched = runner.invoke(app, ["datasets", "download", name, "--dir", str(tmp_path), "--catalog", str(CATALOG)])
