@@ -108,6 +108,7 @@ def test_generated_tasks_are_the_wide_generators_drawn_from_the_datasets_seed(bu
     assert m["spec"]["generated_tasks"] == len(tasks) == 4 and m["suite"]["sha256"] == public.sha256
     assert [t.name.split("-")[:2] for t in tasks] == [["generated", f"{i:03d}"] for i in range(4)]
     assert set(df["suite_task_index"]) <= set(range(4))
+    assert check_training_dataset(root) == m  # every worker in its own generated task's meta-train support
     assert "generated tasks" in m["worker_distribution"]["task_choice"] and "generator drew" in m["columns"]["suite_task_index"]
     eq1 = {(t.N, t.M): t.rewards for t in public.tasks}  # Eq. 1's rewards depend on N and M only
     assert any((t.N, t.M) in eq1 for t in tasks)
