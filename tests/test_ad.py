@@ -15,6 +15,7 @@ torch = pytest.importorskip("torch")
 
 from mewa_bench.agents import ad  # noqa: E402
 from mewa_bench.agents.causal_transformer import OBS  # noqa: E402
+from test_relabel import renamed_by_hand  # noqa: E402
 from two_worker_task import assert_adapts_and_beats_the_best_fixed_policy, judge, learner_histories  # noqa: E402
 pytestmark = pytest.mark.usefixtures("offline_hub")  # lerobot caches in a temp dir, the Hub forbidden
 
@@ -38,6 +39,23 @@ def test_a_window_is_whole_episodes_of_one_history_starting_afresh() -> None:
         assert (tokens[row, 1:n, OBS:] == data.tokens[rows[1:], OBS:]).all()  # later ones: the history's own
     optimal = ad.window_batch(data, sequences, first, 3, "optimal_action")[2].numpy()
     assert (optimal[valid] == 3).all()
+
+
+def test_a_renamed_window_is_the_same_history_under_other_colour_names() -> None:
+    data = ad.windows_from(learner_histories(4, 20, 0))
+    sequences, first, p = np.array([2, 0]), np.array([7, 0]), np.array([[2, 0, 3, 1], [1, 3, 0, 2]])
+    plain = [t.numpy() for t in ad.window_batch(data, sequences, first, 3, "action")]
+    renamed = [t.numpy() for t in ad.window_batch(data, sequences, first, 3, "action", p)]
+    assert (plain[1] == renamed[1]).all() and (plain[3] == renamed[3]).all()  # episodes, valid
+    for row in range(2):
+        n = int(plain[3][row].sum())
+        before, after = plain[0][row, :n], renamed[0][row, :n]
+        for t in range(n):
+            assert (after[t, :OBS] == renamed_by_hand(before[t, :OBS], p[row])).all()
+            assert (after[t, OBS:2 * OBS] == renamed_by_hand(before[t, OBS:2 * OBS], p[row])).all()
+            assert (after[t, 2 * OBS + p[row]] == before[t, 2 * OBS:2 * OBS + 4]).all()  # previous action
+        assert (after[:, -2:] == before[:, -2:]).all()  # previous reward, new episode
+        assert (renamed[2][row, :n] == p[row][plain[2][row, :n]]).all()  # the learner's action, renamed
 
 
 def test_a_lane_plays_on_the_tokens_it_was_trained_on(tmp_path: Path) -> None:

@@ -17,6 +17,11 @@ datasets build`, by default a learning-histories tier), the supervised training 
   transition, an episode-index embedding counted from the window's first episode, a pre-norm causal
   transformer without position embeddings. `context` (default 1,000 = 10 episodes of at most 100 steps)
   is at least a window's length, so every token attends to the whole window before it.
+- Colour renaming (`rename_colours`, off by default): the rules do not care which palette colour is which
+  (`game.relabel`), so a history with its colours renamed is a history of the renamed task with the same
+  worker. Each window is then seen under a renaming drawn with the run's generator: on a wide suite a model
+  meets every colouring of the task structures (N, K, M, worker blocks) it is trained on, not only the
+  colourings in its data.
 - Training: cross-entropy on every frame of `batch` windows per update, drawn with the run's generator;
   AdamW; `total_steps` counts windows seen. Deterministic for its seed on one machine (torch's CPU
   kernels, one thread). No environment interaction.
@@ -39,11 +44,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from mewa_bench.agents.causal_transformer import EPISODES, OBS, TOKEN, TransformerLanes, make_tokens, make_transformer
+from mewa_bench.agents.causal_transformer import (EPISODES, OBS, TOKEN, TransformerLanes, make_tokens, make_transformer,
+                                                  token_gather)
 from mewa_bench.agents.lanes import truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, fit_labels, load_for_play, offline_settings,
                                            restore, resumed, torch_module)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
+from mewa_bench.game.relabel import renamings
 from mewa_bench.protocol.agent import SingleLane
 
 __all__ = ["ADAgent", "ADVectorAgent", "CHECKPOINT", "METRICS", "STEP_UNIT", "Settings", "Windows", "make_model",
@@ -69,6 +76,7 @@ class Settings:
     heads: int = 4
     learning_rate: float = 1e-3
     anneal: bool = False  # the learning rate falls to 0 along a cosine over the run (false: constant)
+    rename_colours: bool = False  # each window under a random renaming of the palette's colours (game.relabel)
     weight_decay: float = 0.01
     max_grad_norm: float = 1.0
     greedy: bool = True  # how the submission's agent.py plays: the most likely action (false: sampled)
@@ -124,11 +132,11 @@ def _torch() -> Any:
     return torch_module("the AD baseline")
 
 
-def window_batch(data: Windows, sequences: np.ndarray, first: np.ndarray, episodes: int,
-                 label: str) -> tuple[Any, Any, Any, Any]:
+def window_batch(data: Windows, sequences: np.ndarray, first: np.ndarray, episodes: int, label: str,
+                 renamings: np.ndarray | None = None) -> tuple[Any, Any, Any, Any]:
     """Padded tensors of the windows of `episodes` episodes of `sequences` starting at their episode `first`: tokens
     [B, L, TOKEN] (each window's first token without a previous transition, as a pair's first), episode (counted
-    from the window's first), label and valid [B, L]."""
+    from the window's first), label and valid [B, L]; window b with colour c renamed renamings[b, c] if given."""
     torch = _torch()
     begin_episode = data.first_episode[sequences] + first
     end_episode = np.minimum(begin_episode + episodes, data.first_episode[sequences + 1])
@@ -142,6 +150,9 @@ def window_batch(data: Windows, sequences: np.ndarray, first: np.ndarray, episod
         tokens[row, 0, OBS:] = 0.0  # no previous transition: the window is a fresh context
         episode[row, :n] = np.minimum(data.episode[b:e] - e0, EPISODES - 1)
         target[row, :n], valid[row, :n] = data.labels[label][b:e], True
+        if renamings is not None:
+            tokens[row, :n] = tokens[row, :n][:, token_gather(renamings[row])]
+            target[row, :n] = renamings[row][target[row, :n]]
     return tuple(torch.as_tensor(a) for a in (tokens, episode, target, valid))
 
 
@@ -174,7 +185,8 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Windows | N
         began = time.perf_counter()
         sequences = rng.choice(len(data), size=settings.batch, replace=len(data) < settings.batch)
         first = rng.integers(0, latest[sequences] + 1)
-        tokens, episode, label, valid = window_batch(data, sequences, first, settings.episodes, settings.label)
+        renamed = renamings(rng, settings.batch) if settings.rename_colours else None
+        tokens, episode, label, valid = window_batch(data, sequences, first, settings.episodes, settings.label, renamed)
         if settings.anneal:
             for group in optimizer.param_groups:
                 group["lr"] = settings.learning_rate * 0.5 * (1.0 + np.cos(np.pi * update / updates))

@@ -31,10 +31,11 @@ import numpy as np
 
 from mewa_bench.agents.lanes import LaneGenerators, pick_actions
 from mewa_bench.agents.training_io import torch_module
+from mewa_bench.game.relabel import observation_gather
 from mewa_bench.protocol.agent import state_vector
 
 __all__ = ["ACTIONS", "EPISODES", "LaneCache", "LaneGroup", "OBS", "OBS_SCALE", "TOKEN", "TransformerLanes", "make_tokens",
-           "make_transformer"]
+           "make_transformer", "token_gather"]
 
 OBS_SCALE = 8.0  # the 18 env floats are block counts up to about 8; the rest is already in [-1, 1]
 OBS = 18
@@ -52,6 +53,15 @@ def make_tokens(obs: np.ndarray, previous_obs: np.ndarray, previous_action: np.n
     tokens[rows, 2 * OBS + np.asarray(previous_action)[rows]] = 1.0
     tokens[:, -2], tokens[:, -1] = previous_reward, new_episode
     return tokens
+
+
+def token_gather(renaming: np.ndarray) -> np.ndarray:
+    """Indices g with renamed_tokens = tokens[..., g] when palette colour c is renamed renaming[c]
+    (`game.relabel`): both observations' per-colour entries and the previous action move (int64[TOKEN])."""
+    obs = observation_gather(renaming)
+    action = np.empty(ACTIONS, dtype=np.int64)
+    action[np.asarray(renaming)] = np.arange(ACTIONS)
+    return np.r_[obs, OBS + obs, 2 * OBS + action, TOKEN - 2, TOKEN - 1]
 
 
 def _torch() -> Any:
