@@ -125,9 +125,9 @@ def play_tier(tier: str, suite: str, tasks: tuple[Task, ...], task_index: int, w
         return TierRun(played, chosen.reshape(-1))
     if tier == "task-inferring-histories":
         from mewa_bench.datasets.expert_rollout import play_in_chunks
-        from mewa_bench.datasets.inferring_histories import play_inferring_histories
+        from mewa_bench.datasets.pool_models import play_pool_histories
 
-        played = play_in_chunks(play_inferring_histories, (tasks,), np.full(n_meta, task_index), workers, keys,
+        played = play_in_chunks(play_pool_histories, (tasks,), np.full(n_meta, task_index), workers, keys,
                                 agent_seeds, jobs, map_tasks)
         return TierRun(played, np.full(n_meta * n_ep, ADAPTIVE, dtype=np.int64))
     if tier == "expert":
