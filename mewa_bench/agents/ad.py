@@ -133,10 +133,10 @@ def _torch() -> Any:
 
 
 def window_batch(data: Windows, sequences: np.ndarray, first: np.ndarray, episodes: int, label: str,
-                 renamings: np.ndarray | None = None) -> tuple[Any, Any, Any, Any]:
+                 renamed: np.ndarray | None = None) -> tuple[Any, Any, Any, Any]:
     """Padded tensors of the windows of `episodes` episodes of `sequences` starting at their episode `first`: tokens
     [B, L, TOKEN] (each window's first token without a previous transition, as a pair's first), episode (counted
-    from the window's first), label and valid [B, L]; window b with colour c renamed renamings[b, c] if given."""
+    from the window's first), label and valid [B, L]; window b with colour c renamed renamed[b, c] if given."""
     torch = _torch()
     begin_episode = data.first_episode[sequences] + first
     end_episode = np.minimum(begin_episode + episodes, data.first_episode[sequences + 1])
@@ -150,9 +150,9 @@ def window_batch(data: Windows, sequences: np.ndarray, first: np.ndarray, episod
         tokens[row, 0, OBS:] = 0.0  # no previous transition: the window is a fresh context
         episode[row, :n] = np.minimum(data.episode[b:e] - e0, EPISODES - 1)
         target[row, :n], valid[row, :n] = data.labels[label][b:e], True
-        if renamings is not None:
-            tokens[row, :n] = tokens[row, :n][:, token_gather(renamings[row])]
-            target[row, :n] = renamings[row][target[row, :n]]
+        if renamed is not None:
+            tokens[row, :n] = tokens[row, :n][:, token_gather(renamed[row])]
+            target[row, :n] = renamed[row][target[row, :n]]
     return tuple(torch.as_tensor(a) for a in (tokens, episode, target, valid))
 
 
