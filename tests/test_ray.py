@@ -105,7 +105,8 @@ def test_record_on_ray_writes_the_same_dataset(tmp_path: Path) -> None:
         assert (tmp_path / "ray" / "ds" / name).read_bytes() == (tmp_path / "local" / "ds" / name).read_bytes(), name
 
 
-@pytest.mark.parametrize("kind", ["narrow", pytest.param("wide", marks=pytest.mark.slow)])  # wide: about 100 s
+@pytest.mark.slow  # narrow about 40 s, wide about 100 s: the default tier checks the Ray map on evaluate, record and train
+@pytest.mark.parametrize("kind", ["narrow", "wide"])
 def test_generate_on_ray_reproduces_the_shipped_suite(kind: str) -> None:
     from typer.testing import CliRunner
 
@@ -152,6 +153,7 @@ def test_a_vector_agent_on_ray_gives_the_one_lane_local_results(tmp_path: Path) 
     assert len(on_ray["units"]) == 12
 
 
+@pytest.mark.slow  # about 50 s: the expert tier's play and exact labels, twice
 def test_a_training_dataset_built_on_ray_has_the_local_bytes(tmp_path: Path) -> None:
     """The expert tier (its play and the exact values as Ray tasks) gives byte-identical files to a one-process build."""
     from mewa_bench.datasets.training_data import build_training_dataset, ray_tasks, training_spec

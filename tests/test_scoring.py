@@ -17,8 +17,8 @@ from mewa_bench.game.normalise import normalised_return
 from mewa_bench.protocol import policy_agent
 from mewa_bench.protocol.config import EvalConfig
 from mewa_bench.protocol.runner import evaluate
-from mewa_bench.protocol.scoring import (CV_MIN_SEEDS, control_variates, episode_scores, interquartile_mean, score_units, skill_of,
-                                         stratified_resamples)
+from mewa_bench.protocol.scoring import (CV_MIN_SEEDS, control_variates, episode_scores, interquartile_mean, resampled_sums, score_units,
+                                         skill_of, stratified_resamples)
 
 K = 10
 
@@ -56,6 +56,14 @@ def test_stratified_resamples_stay_within_their_pair() -> None:
     idx = stratified_resamples(strata, samples=300, seed=3)
     assert np.array_equal(strata[idx], np.broadcast_to(strata, idx.shape))
     assert np.array_equal(idx, stratified_resamples(strata, samples=300, seed=3))
+
+
+@pytest.mark.parametrize("units,columns", [(7, 1), (500, 1), (7, 2), (300, 3), (960, 30)])
+def test_resampled_sums_have_the_bytes_of_numpys_sum_of_the_gathered_units(units: int, columns: int) -> None:
+    rng = np.random.default_rng(units * columns)  # values over 16 decades: any other order of the additions shows
+    values = rng.normal(size=(units, columns)) * 10.0 ** rng.integers(-8, 8, size=(units, 1))
+    idx = rng.integers(0, units, size=(200, units))
+    assert resampled_sums(values, idx).tobytes() == values[idx].sum(axis=1).tobytes()
 
 
 def test_control_variate_with_an_identical_reference_removes_all_noise() -> None:

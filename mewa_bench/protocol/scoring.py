@@ -429,11 +429,20 @@ def pair_means(values: np.ndarray, pairs: np.ndarray) -> np.ndarray:
 def resampled_sums(values: np.ndarray, idx: np.ndarray, chunk: int = 64) -> np.ndarray:
     """sum(values[idx[b]]) for every resample b: [B, C] from values [U, C] and indices [B, n].
 
-    Summed one unit after another by numpy, not as a matrix product: BLAS splits a product by thread count
-    and CPU kernel, which changes the last bits of the intervals (and the bytes of results and boards)."""
-    out = np.empty((len(idx), values.shape[1]))
-    for start in range(0, len(idx), chunk):
-        out[start:start + chunk] = values[idx[start:start + chunk]].sum(axis=1)
+    The bytes are those of numpy's `values[idx].sum(axis=1)`, never a matrix product's: BLAS splits a product by
+    thread count and CPU kernel, which changes the last bits of the intervals (and the bytes of results and
+    boards). With several columns numpy adds one unit after another (idx[:, 0], then idx[:, 1], ...), so the sum
+    is built in that order a column of indices at a time, which keeps the [B, C] sum in cache (2-3x faster than
+    gathering [chunk, n, C] blocks); a single column numpy sums pairwise, so it is gathered and summed as numpy does."""
+    if values.shape[1] == 1:
+        out = np.empty((len(idx), 1))
+        for start in range(0, len(idx), chunk):
+            out[start:start + chunk] = values[idx[start:start + chunk]].sum(axis=1)
+        return out
+    by_position = np.ascontiguousarray(idx.T)
+    out = values[by_position[0]]
+    for units in by_position[1:]:
+        out += values[units]
     return out
 
 
