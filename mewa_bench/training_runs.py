@@ -1,7 +1,7 @@
 """Training runs of the learned baselines as `mewa-bench train` makes them: one run folder per seed.
 
-`choose_algorithm` reads the algorithm, its changed settings and its dataset (an offline algorithm
-learns from one, an online one takes none); `plan_runs` fixes each seed's settings (whole
+`choose_algorithm` reads the algorithm, its changed settings and its datasets (an offline algorithm
+learns from one, AD from one or more, an online one takes none); `plan_runs` fixes each seed's settings (whole
 updates), run folder and the command that reproduces the run; `train_here` trains the seeds one
 after the other in this process, `train_on_ray` as one Ray task per seed; `finish_run` records
 run.json and plots the training curve, which makes the folder a submission.
@@ -67,9 +67,10 @@ class TrainingPlan:
         return self.jobs[0][0].suite
 
 
-def choose_algorithm(algo: str, settings: list[str], dataset: Path | None, absolute_dataset: bool) -> Algorithm:
-    """The algorithm `algo` with its KEY=VALUE `settings` changed and its `dataset` (absolute for Ray workers,
-    whose working directory may differ; else as given, as in the README's command); TrainingOptionError."""
+def choose_algorithm(algo: str, settings: list[str], datasets: list[Path], absolute_dataset: bool) -> Algorithm:
+    """The algorithm `algo` with its KEY=VALUE `settings` changed and its `datasets` (absolute for Ray workers,
+    whose working directory may differ; else as given, as in the README's command; an algorithm whose settings
+    have `more_datasets` pools several); TrainingOptionError."""
     try:
         module = load_algorithm(algo)
     except UnknownAlgorithm as e:
@@ -78,18 +79,22 @@ def choose_algorithm(algo: str, settings: list[str], dataset: Path | None, absol
         overrides = setting_overrides(module.Settings, settings)
     except ValueError as e:
         raise TrainingOptionError(str(e), "--set") from None
-    offline = {} if dataset is None else {"dataset": str(dataset.resolve() if absolute_dataset else dataset)}
+    folders = [str(d.resolve() if absolute_dataset else d) for d in datasets]
+    offline = {} if not folders else {"dataset": folders[0], **({"more_datasets": folders[1:]} if folders[1:] else {})}
     chosen = Algorithm(algo, module, overrides, offline)
-    if dataset is not None and not chosen.learns_offline:
+    if folders and not chosen.learns_offline:
         raise TrainingOptionError(f"{algo} learns online: only offline algorithms (dpt, imitation, ad) take a dataset", "--dataset")
-    if dataset is None and chosen.learns_offline:
+    if folders[1:] and "more_datasets" not in module.Settings.__dataclass_fields__:
+        raise TrainingOptionError(f"{algo} learns from one dataset (--dataset given {len(folders)} times); ad pools the "
+                                  f"histories of several datasets of one suite", "--dataset")
+    if not folders and chosen.learns_offline:
         raise TrainingOptionError(f"{algo.upper()} learns from a training dataset: give --dataset (a folder that "
                                   f"`mewa-bench datasets build NAME` wrote)", "--dataset")
     return chosen
 
 
 def plan_runs(chosen: Algorithm, name: str, suite: str | None, seeds: list[int], steps: int | None, out: Path | None,
-              resume: bool, workers: list[str], settings: list[str], dataset: Path | None) -> TrainingPlan:
+              resume: bool, workers: list[str], settings: list[str], datasets: list[Path]) -> TrainingPlan:
     """One job per seed (each seed once): its settings with whole updates, its run folder (under `out` when there
     are several seeds) and the `mewa-bench train` command that reproduces it; TrainingOptionError."""
     algo, module = chosen.algo, chosen.module
@@ -112,7 +117,7 @@ def plan_runs(chosen: Algorithm, name: str, suite: str | None, seeds: list[int],
                             shlex.quote(seed_settings.suite), "--seed", str(s), "--steps",
                             str(seed_settings.total_steps), "--out", shlex.quote(str(folder)),
                             *(f"--worker {w}" for w in workers),
-                            *([f"--dataset {shlex.quote(str(dataset))}"] if dataset is not None else [])])
+                            *(f"--dataset {shlex.quote(str(d))}" for d in datasets)])
         jobs.append((seed_settings, folder.resolve(), resume, command))
     return TrainingPlan(chosen, name, steps, jobs)
 
@@ -172,7 +177,8 @@ def finish_run(plan: TrainingPlan, job: Job, paths: list[Path]) -> list[Path]:
 
     settings, folder, _, _ = job
     algo, suite = plan.algorithm.algo, plan.suite
-    notes = dataset_note(settings.dataset) if plan.algorithm.learns_offline else ""
+    folders = [settings.dataset, *getattr(settings, "more_datasets", [])] if plan.algorithm.learns_offline else []
+    notes = "; ".join(("also " if i else "") + dataset_note(folder) for i, folder in enumerate(folders))
     info = write_run_info(folder, RunInfo(algorithm=plan.name, seed=settings.seed, suite=suite,
                                           steps=settings.total_steps, notes=notes,
                                           settings={**plan.algorithm.overrides, **plan.algorithm.offline}))

@@ -97,6 +97,18 @@ def test_a_lane_plays_on_the_tokens_it_was_trained_on(tmp_path: Path) -> None:
     torch.testing.assert_close(cached, full, rtol=0, atol=1e-10)
 
 
+def test_pooled_windows_are_each_datasets_histories_in_turn() -> None:
+    first, second = ad.windows_from(learner_histories(3, 12, 0)), ad.windows_from(learner_histories(2, 12, 1))
+    both = ad.pooled([first, second])
+    assert len(both) == 5 and both.episode_counts().tolist() == [12] * 5
+    for sequence, (part, own) in enumerate([(first, 0), (first, 1), (first, 2), (second, 0), (second, 1)]):
+        for label in ("action", "optimal_action"):
+            pooled = ad.window_batch(both, np.array([sequence]), np.array([2]), 10, label)
+            alone = ad.window_batch(part, np.array([own]), np.array([2]), 10, label)
+            assert all(torch.equal(a, b) for a, b in zip(pooled, alone))
+    assert ad.pooled([first]) is first
+
+
 def test_ad_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_path: Path) -> None:
     """The learning test: trained on 256 posterior-sampling histories of 10 episodes (300 updates of 8), the
     transformer improves from episode 1 to 10 in context and beats the best fixed policy, judged under the
@@ -131,3 +143,42 @@ def test_train_ad_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) -> 
     results, _ = evaluate(EvalConfig(agent_path=out / "agent.py", suite="narrow-v2", out=tmp_path / "r.json",
                                      seeds=(0, 1), pairs=(0, 3)))
     assert len(results["units"]) == 4
+
+
+def test_train_ad_pools_the_histories_of_several_datasets_of_one_suite(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from mewa_bench.cli import app
+    from mewa_bench.datasets import build_training_dataset, training_spec
+
+    data = {}
+    for seed in (1, 2):
+        data[seed] = tmp_path / f"data{seed}"
+        spec = replace(training_spec("narrow-v2-train-learning-histories", 1), meta_batch=2, seed=seed)
+        build_training_dataset(spec, data[seed], jobs=1)
+    out = tmp_path / "run"
+    options = ["--steps", "2", "--set", "batch=2", "--set", "d_model=8", "--set", "heads=2"]
+    result = CliRunner().invoke(app, ["train", "ad", "--dataset", str(data[1]), "--dataset", str(data[2]),
+                                      "--out", str(out), *options], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    info = json.loads((out / "run.json").read_text())
+    assert info["settings"]["more_datasets"] == [str(data[2])]
+    assert info["notes"].count("trained on narrow-v2-train-learning-histories") == 2 and "; also trained on" in info["notes"]
+    assert f"--dataset {data[1]} --dataset {data[2]}" in (out / "README.md").read_text()
+    settings = ad.settings_from(info["settings"] | {"suite": "narrow-v2"})
+    alone = [ad.read_windows(replace(settings, dataset=str(data[s]), more_datasets=[])) for s in (1, 2)]
+    both = ad.read_windows(settings)
+    assert len(both) == len(alone[0]) + len(alone[1]) == 4
+    assert (both.tokens == np.concatenate([alone[0].tokens, alone[1].tokens])).all()
+
+    other = tmp_path / "other"  # a dataset of another suite (its metadata is all the check reads)
+    (other / "meta").mkdir(parents=True)
+    meta = json.loads((data[2] / "meta" / "mewa.json").read_text())
+    (other / "meta" / "mewa.json").write_text(json.dumps({**meta, "suite": {**meta["suite"], "name": "wide-v2"}}))
+    result = CliRunner().invoke(app, ["train", "ad", "--dataset", str(data[1]), "--dataset", str(other),
+                                      "--out", str(tmp_path / "bad"), *options], env={"COLUMNS": "200"})
+    assert result.exit_code != 0 and "a dataset of wide-v2, not of narrow-v2" in " ".join(result.output.split())
+    result = CliRunner().invoke(app, ["train", "dpt", "--dataset", str(data[1]), "--dataset", str(data[2]),
+                                      "--out", str(tmp_path / "dpt")], env={"COLUMNS": "200"})
+    assert result.exit_code != 0 and "dpt learns from one dataset" in " ".join(result.output.split())
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "dpt").exists()

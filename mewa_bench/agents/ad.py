@@ -10,7 +10,9 @@ datasets build`, by default a learning-histories tier), the supervised training 
   Every window is `episodes` consecutive episodes of one history (the protocol's 10), starting at an
   episode drawn uniformly from 0..`max_start` (0: only the history's start, exactly what a pair's 10 episodes
   from scratch look like; larger: AD's across-the-history windows, whose earlier episodes the learner had
-  already seen, so the model learns to improve faster than its context alone would justify).
+  already seen, so the model learns to improve faster than its context alone would justify). Several datasets
+  of one suite pool their histories (`more_datasets`, `train ad --dataset A --dataset B`), e.g. a wide suite's
+  own tasks and tasks its generator draws (`<suite>-train-generated-tasks`).
 - Label: the learner's own action (`action`), a function of what it had seen; never the known-worker
   optimum (`optimal_action`, privileged: DPT's label) unless asked.
 - Tokens and model: DPT's (`agents.causal_transformer`): per frame the observation and the whole previous
@@ -54,7 +56,7 @@ from mewa_bench.game.relabel import renamings
 from mewa_bench.protocol.agent import SingleLane
 
 __all__ = ["ADAgent", "ADVectorAgent", "CHECKPOINT", "METRICS", "STEP_UNIT", "Settings", "Windows", "make_model",
-           "settings_from", "train", "train_run", "windows_from"]
+           "pooled", "read_windows", "settings_from", "train", "train_run", "windows_from"]
 
 STEP_UNIT = "windows"  # what `total_steps` counts (`train --steps`)
 LABELS = ("action", "optimal_action")
@@ -66,6 +68,7 @@ class Settings:
     seed: int = 1
     total_steps: int = 32_000  # windows seen in training (STEP_UNIT)
     dataset: str = ""  # folder of a training dataset (mewa-bench datasets build NAME)
+    more_datasets: list[str] = field(default_factory=list)  # further datasets of the suite, pooled (--dataset again)
     label: str = "action"  # what it predicts: the behaviour's actions, or optimal_action (privileged)
     episodes: int = 10  # episodes per window (a pair's 10)
     max_start: int = 0  # windows start at a history's episode 0..max_start
@@ -123,6 +126,32 @@ def windows_from(data: Any) -> Windows:
                    np.r_[starts, len(tokens)].astype(np.int64), first_episode.astype(np.int64))
 
 
+def pooled(parts: list[Windows]) -> Windows:
+    """The sequences of several `Windows` as one, in order."""
+    if len(parts) == 1:
+        return parts[0]
+    frames = np.cumsum([0] + [len(p.tokens) for p in parts[:-1]])
+    episodes = np.cumsum([0] + [len(p.episode_starts) - 1 for p in parts[:-1]])
+    return Windows(np.concatenate([p.tokens for p in parts]), np.concatenate([p.episode for p in parts]),
+                   {k: np.concatenate([p.labels[k] for p in parts]) for k in parts[0].labels},
+                   np.r_[np.concatenate([p.episode_starts[:-1] + f for p, f in zip(parts, frames)]),
+                         frames[-1] + len(parts[-1].tokens)].astype(np.int64),
+                   np.r_[np.concatenate([p.first_episode[:-1] + e for p, e in zip(parts, episodes)]),
+                         episodes[-1] + len(parts[-1].episode_starts) - 1].astype(np.int64))
+
+
+def read_windows(settings: Settings) -> Windows:
+    """The windows of the settings' datasets (their histories pooled), cut where a window can reach."""
+    from mewa_bench.datasets.meta_episodes import first_episodes, read_sequences
+
+    if not settings.dataset:
+        raise ValueError("AD learns from a training dataset: give --dataset (a folder that `mewa-bench datasets "
+                         "build NAME` wrote, e.g. narrow-v2-train-learning-histories)")
+    reach = settings.max_start + settings.episodes
+    return pooled([windows_from(first_episodes(read_sequences(folder, "meta-episode", settings.suite), reach))
+                   for folder in (settings.dataset, *settings.more_datasets)])
+
+
 def make_model(settings: Settings) -> Any:
     """The causal transformer (`agents.causal_transformer`), as DPT's."""
     return make_transformer(settings.d_model, settings.heads, settings.layers, settings.context)
@@ -158,10 +187,8 @@ def window_batch(data: Windows, sequences: np.ndarray, first: np.ndarray, episod
 
 def train(settings: Settings, out: Path, resume: bool = False, data: Windows | None = None,
           progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
-    """Train (or resume) a run in `out` on `data` (default: the settings' dataset's sequences); the checkpoint
+    """Train (or resume) a run in `out` on `data` (default: the settings' datasets' sequences); the checkpoint
     path."""
-    from mewa_bench.datasets.meta_episodes import first_episodes, read_sequences
-
     torch = _torch()
     torch.set_num_threads(1)
     if settings.label not in LABELS:
@@ -172,12 +199,7 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Windows | N
     model = make_model(settings)
     optimizer = torch.optim.AdamW(model.parameters(), lr=settings.learning_rate, weight_decay=settings.weight_decay)
     start_update = 0 if state is None else restore(out, state, model, {"optimizer": optimizer})
-    if data is None:
-        if not settings.dataset:
-            raise ValueError("AD learns from a training dataset: give --dataset (a folder that `mewa-bench datasets "
-                             "build NAME` wrote, e.g. narrow-v2-train-learning-histories)")
-        histories = read_sequences(settings.dataset, "meta-episode", settings.suite)
-        data = windows_from(first_episodes(histories, settings.max_start + settings.episodes))  # what windows reach
+    data = read_windows(settings) if data is None else data
     latest = np.minimum(settings.max_start, np.maximum(data.episode_counts() - settings.episodes, 0))
     updates = settings.total_steps // settings.steps_per_update
     rng = np.random.default_rng([settings.seed, start_update])

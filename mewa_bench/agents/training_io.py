@@ -98,6 +98,11 @@ def offline_settings(cls: type[S], values: dict[str, Any], base: S | None = None
 
         meta = read_training_meta(settings.dataset)  # type: ignore[attr-defined]
         settings = settings_with(cls, {"suite": meta["suite"]["name"]}, settings, name)
+        for folder in getattr(settings, "more_datasets", []):
+            suite = read_training_meta(folder)["suite"]["name"]
+            if suite != meta["suite"]["name"]:
+                raise ValueError(f"{folder}: a dataset of {suite}, not of {meta['suite']['name']} (the first "
+                                 f"dataset's): pooled datasets must be of one suite")
     return settings
 
 
@@ -116,7 +121,7 @@ def dataset_note(dataset: str | Path) -> str:
     return note if entry is None else f"{note}; archive sha256 {entry['sha256']}"
 
 
-RUN_OPTIONS = ("suite", "seed", "total_steps", "workers", "dataset")  # set by `train` with options of their own
+RUN_OPTIONS = ("suite", "seed", "total_steps", "workers", "dataset", "more_datasets")  # set by `train` with options of their own
 
 
 def setting_overrides(cls: type, items: Sequence[str]) -> dict[str, Any]:

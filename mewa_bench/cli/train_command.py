@@ -30,10 +30,11 @@ def train(algo: str = typer.Argument(..., metavar="ALGO", help="rl2, varibad, pe
                                                                 "(repeatable; default: the suite's meta-train distribution)."),
           set_: list[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Change one of the algorithm's "
                                          "settings, e.g. learning_rate=3e-4 (repeatable; recorded in run.json)."),
-          dataset: Path = typer.Option(None, "--dataset", help="Offline algorithms (dpt, imitation, ad): the training dataset "
-                                                               "folder they learn from (`mewa-bench datasets build "
-                                                               "NAME` writes mewa-datasets/NAME); its suite is the "
-                                                               "run's."),
+          dataset: list[Path] = typer.Option([], "--dataset", help="Offline algorithms (dpt, imitation, ad): the training dataset "
+                                                                   "folder they learn from (`mewa-bench datasets build "
+                                                                   "NAME` writes mewa-datasets/NAME); its suite is the "
+                                                                   "run's. ad: repeatable, pooling the histories of "
+                                                                   "several datasets of one suite."),
           algorithm: str = typer.Option(None, "--algorithm", help="The algorithm's name on the boards and in the "
                                                                  "run folder's name (default: ALGO; name runs with "
                                                                  "other settings apart, e.g. rl2-lr3e-4)."),
