@@ -119,6 +119,7 @@ def test_generated_tasks_are_the_wide_generators_drawn_from_the_datasets_seed(bu
     spec = small_spec(*GENERATED)
     assert training_suite(replace(spec, generated_tasks=6)).tasks[:4] == tasks  # a larger pool starts with them
     assert "generated_tasks" not in meta(built[("wide-v2", "task-inferring-histories")])["spec"]  # bytes as before
+    assert "task_structures" not in meta(built[("wide-v2", "task-inferring-histories")])["spec"] and "task_structures" not in m["spec"]
     with pytest.raises(ValueError, match="narrow-v2 has one task"):
         training_suite(replace(small_spec("narrow-v2", "random"), generated_tasks=3))
 

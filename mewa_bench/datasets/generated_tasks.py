@@ -7,15 +7,22 @@ worker blocks by `design.generate.sample_wide_task`; Eq. 1's rewards and, on v2,
 by `design.generate.designed`) from the training dataset's own seed is data for that. Unlike the suite's
 tasks, a pool's are not screened for adaptivity (that needs every candidate worker's exact values); a
 learner still has to find the worker on each.
+
+A pool drawn at random holds some structures (N, K, M, worker blocks) and not others, and its colours tell its
+tasks apart where a new task's would not. `task_structures` is the generator's whole range up to renaming the
+colours (`game.relabel`): every structure once, in colours 0..N-1 completed in that order, so a learner that
+tells them apart must do it by playing, and a model trained on them under random renamings meets every task the
+generator can draw.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 
-from mewa_bench.design.generate import designed, sample_wide_task
+from mewa_bench.design.generate import WORKER_BLOCK_TOTAL, designed, sample_wide_task
 from mewa_bench.design.suites import Suite
 from mewa_bench.game.task import Task
 
@@ -29,6 +36,24 @@ def generated_tasks(suite: Suite, count: int, rng: np.random.Generator) -> tuple
     for i in range(count):
         task, _ = designed(sample_wide_task(rng, i), families)
         out.append(Task.from_dict({**task.to_dict(), "name": f"generated-{i:03d}-n{task.N}-k{task.K}-m{task.M}"}))
+    return tuple(out)
+
+
+def task_structures(suite: Suite) -> tuple[Task, ...]:
+    """Every task structure of `suite`'s generator once (N in 3, 4; K in 3..5; M in 3..K; each composition of the
+    worker blocks), colours 0..N-1 completed in that order, named `structure-<i>-n<N>-k<K>-m<M>`: 168 on the
+    wide suites, each of the generator's tasks a renaming of one (`game.relabel.relabelled_task`)."""
+    if suite.content.get("suite") != "wide":
+        raise ValueError(f"{suite.name} has one task, not a task generator: task structures need a wide suite")
+    families = int(suite.content["version"]) >= 2
+    out = []
+    for n, k in itertools.product((3, 4), (3, 4, 5)):
+        for m, cuts in itertools.product(range(3, k + 1), itertools.combinations(range(1, WORKER_BLOCK_TOTAL), n - 2)):
+            blocks = tuple(int(b) for b in np.diff((0, *cuts, WORKER_BLOCK_TOTAL))) + (0,)
+            colours = tuple(range(n))
+            task, _ = designed(Task(colors=colours, order=colours, K=k, M=m, rewards=tuple(-1.0 + 0.1 * i for i in range(n)),
+                                    worker_blocks=blocks, name=""), families)
+            out.append(Task.from_dict({**task.to_dict(), "name": f"structure-{len(out):03d}-n{n}-k{k}-m{m}"}))
     return tuple(out)
 
 

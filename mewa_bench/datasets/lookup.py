@@ -22,7 +22,8 @@ def buildable_description(name: str, catalog: dict[str, Any] | None) -> dict[str
     record = recorded_build(catalog, spec.name, spec.version) if catalog is not None else None
     return {"name": spec.name, "version": spec.version, "kind": TRAINING, "suite": spec.suite, "tier": spec.tier,
             "frames (at least)": f"{spec.frames:,}", "behaviour": _behaviour(spec.tier, spec.expert_agent),
-            "tasks": (f"{spec.generated_tasks} that the suite's generator draws (not the suite's)" if spec.generated_tasks
+            "tasks": ("every structure of the suite's generator, colours 0..N-1 (not the suite's)" if spec.task_structures
+                      else f"{spec.generated_tasks} that the suite's generator draws (not the suite's)" if spec.generated_tasks
                       else "the suite's"),
             "dataset id": spec.dataset_id, "recorded sha256": record["sha256"] if record else "none recorded yet",
             "how to get it": f"{spec.build_command()} (built locally and deterministically; not downloaded)"}

@@ -7,7 +7,7 @@ protocol's (`training_keys`), every frame labelled with the exact known-worker o
 (`labels`), written in bulk as a LeRobot v3.0 dataset (`bulk_writer`) with `meta/mewa.json`
 (its own metadata; `minari_export` writes Minari's). A wide suite's datasets may play tasks its
 generator draws from the dataset's seed instead of the suite's ten (`generated_tasks`: to learn to adapt to
-a task never seen), listed in meta/mewa.json. Workers and keys are checked when the dataset is built and
+a task never seen), or every structure of its generator (`task_structures`), listed in meta/mewa.json. Workers and keys are checked when the dataset is built and
 again when it is loaded (`load_training_dataset`) or downloaded: one curated worker of any suite or
 one protocol luck key and the dataset is refused.
 
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from mewa_bench.datasets.expert_rollout import MapTasks
-from mewa_bench.datasets.generated_tasks import generated_tasks, with_tasks
+from mewa_bench.datasets.generated_tasks import generated_tasks, task_structures, with_tasks
 from mewa_bench.datasets.labels import optimal_labels
 from mewa_bench.datasets.tiers import (ADAPTIVE, PROTOCOL_EPISODES, TIERS, TierRun, behaviour_source,
                                        episodes_per_worker, expected_of_episodes, file_sha256, play_tier,
@@ -68,6 +68,7 @@ class TrainingSpec:
     history_episodes: int = 50  # episodes per worker in the history tiers
     expert_agent: str = "bayes-explorer"  # the stronger adaptive reference (most of the v2 suites' gaps)
     generated_tasks: int = 0  # 0: the suite's tasks; n: n tasks its generator draws from this dataset's seed
+    task_structures: bool = False  # the suite's tasks or the generated ones; true: every structure of its generator
 
     @property
     def built_name(self) -> str:
@@ -108,6 +109,9 @@ def _registry() -> dict[str, TrainingSpec]:
         name = f"{s}-train-generated-tasks"
         out[name] = TrainingSpec(name, s, "task-inferring-histories", frames=3_000_000, history_episodes=10,
                                  meta_batch=8192, generated_tasks=200)  # one round: each task's learner model once
+        name = f"{s}-train-task-structures"  # every task of the generator up to renaming its colours
+        out[name] = TrainingSpec(name, s, "task-inferring-histories", frames=3_000_000, history_episodes=10,
+                                 meta_batch=8192, task_structures=True)
     mini = TrainingSpec("narrow-v2-train-random-task-specific-mini", "narrow-v2", "random-task-specific",
                         frames=10_000, meta_batch=16)
     out[mini.name] = mini
@@ -126,9 +130,12 @@ def training_spec(name: str, frames: int | None = None) -> TrainingSpec:
 
 
 def training_suite(spec: TrainingSpec) -> Suite:
-    """The suite a dataset is built for, with the tasks it plays: the suite's own, or `spec.generated_tasks` tasks
-    its generator draws from the dataset's seed (`generated_tasks`)."""
+    """The suite a dataset is built for, with the tasks it plays: the suite's own, `spec.generated_tasks` tasks its
+    generator draws from the dataset's seed (`generated_tasks`), or every structure of its generator
+    (`task_structures`)."""
     suite = load_suite(spec.suite)
+    if spec.task_structures:
+        return with_tasks(suite, task_structures(suite))
     if not spec.generated_tasks:
         return suite
     rng = np.random.default_rng(_seed_int(f"{spec.seed_id}/{spec.seed}/tasks"))
@@ -306,13 +313,17 @@ COLUMN_DOCS = {
 
 GENERATED_TASK_INDEX = ("index of the task in meta/mewa.json `tasks`: tasks the suite's generator drew from the "
                         "dataset's seed, not the suite's own")
+STRUCTURE_TASK_INDEX = ("index of the task in meta/mewa.json `tasks`: every structure of the suite's generator, "
+                        "not the suite's own tasks")
 
 
 def _spec_record(spec: TrainingSpec) -> dict[str, Any]:
-    """The spec as meta/mewa.json records it (`generated_tasks` only when there are some, as before it existed)."""
+    """The spec as meta/mewa.json records it (`generated_tasks` and `task_structures` only when set, as before they
+    existed)."""
     record = asdict(spec)
-    if not spec.generated_tasks:
-        del record["generated_tasks"]
+    for name in ("generated_tasks", "task_structures"):
+        if not record[name]:
+            del record[name]
     return record
 
 
@@ -347,7 +358,8 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
     optimum = np.concatenate([r.optimum for r in rounds])
     source = behaviour_source(spec.tier, spec.expert_agent)
     h = spec.episodes_per_worker
-    whose = "dataset's generated" if spec.generated_tasks else "suite's"
+    whose = ("generator's task structures" if spec.task_structures else
+             "dataset's generated" if spec.generated_tasks else "suite's")
     lengths = per_episode["lengths"]
     expected = per_episode["expected"]
     n = len(task_idx)
@@ -374,7 +386,9 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
                                + "/<meta-episode>/<episode>') >> 1",
                   **({"generated_tasks": f"design.generate.sample_wide_task with numpy default_rng(sha256("
                                          f"'{spec.seed_id}/{spec.seed}/tasks') >> 1), then Eq. 1 (designed)"}
-                     if spec.generated_tasks else {})},
+                     if spec.generated_tasks else {}),
+                  **({"task_structures": "datasets.generated_tasks.task_structures (no draw: every structure once)"}
+                     if spec.task_structures else {})},
         "checks": {"curated_workers": f"none of the {len(ALL_SUITES)} shipped suites' curated workers; "
                                       "every worker in its task's meta-train support",
                    "nearest_curated_worker_linf": round_floats(nearest),
@@ -387,7 +401,8 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
         "total_steps": frames,
         "mewa_bench_version": __version__, "lerobot_version": lerobot_version,
         "build_command": spec.build_command(),
-        "columns": {k: GENERATED_TASK_INDEX if k == "suite_task_index" and spec.generated_tasks else v
+        "columns": {k: (STRUCTURE_TASK_INDEX if spec.task_structures else GENERATED_TASK_INDEX)
+                    if k == "suite_task_index" and (spec.generated_tasks or spec.task_structures) else v
                     for k, v in COLUMN_DOCS.items() if expected is not None or not k.startswith("expected")},
         "tasks": [t.to_dict() for t in suite.tasks],
         "meta_episodes": [{"task": int(task_idx[m]), "worker": workers[m, : suite.tasks[int(task_idx[m])].N].tolist(),
@@ -534,12 +549,12 @@ def read_training_meta(root: Path | str) -> dict[str, Any]:
 
 def dataset_suite(meta: dict[str, Any], root: Path | str) -> Suite:
     """The installed suite a dataset was built for (the same sha256, else an error), with the tasks its frames play
-    (`suite_task_index` indexes them): the suite's own, or the generated tasks that its meta/mewa.json lists."""
+    (`suite_task_index` indexes them): the suite's own, or the generated tasks or structures its meta/mewa.json lists."""
     suite = load_suite(meta["suite"]["name"])
     if suite.sha256 != meta["suite"]["sha256"]:
         raise TrainingDataError(f"{root}: built for {suite.name} sha256 {meta['suite']['sha256']}, the installed "
                                 f"suite is {suite.sha256}")
-    if meta["spec"].get("generated_tasks"):
+    if meta["spec"].get("generated_tasks") or meta["spec"].get("task_structures"):
         return with_tasks(suite, tuple(Task.from_dict(t) for t in meta["tasks"]))
     return suite
 
