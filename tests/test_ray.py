@@ -89,6 +89,7 @@ def test_a_worker_dying_beyond_the_retries_is_a_clear_error(tmp_path: Path, monk
         assert all(len(u["returns"]) == 10 for u in read_results(run.out)["units"])
 
 
+@pytest.mark.slow  # about 25 s; the default tier keeps Ray's evaluate, retries and resume
 def test_record_on_ray_writes_the_same_dataset(tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
@@ -105,7 +106,7 @@ def test_record_on_ray_writes_the_same_dataset(tmp_path: Path) -> None:
         assert (tmp_path / "ray" / "ds" / name).read_bytes() == (tmp_path / "local" / "ds" / name).read_bytes(), name
 
 
-@pytest.mark.slow  # narrow about 40 s, wide about 100 s: the default tier checks the Ray map on evaluate, record and train
+@pytest.mark.slow  # narrow about 40 s, wide about 100 s: the default tier keeps Ray's evaluate, retries and resume
 @pytest.mark.parametrize("kind", ["narrow", "wide"])
 def test_generate_on_ray_reproduces_the_shipped_suite(kind: str) -> None:
     from typer.testing import CliRunner
@@ -117,6 +118,7 @@ def test_generate_on_ray_reproduces_the_shipped_suite(kind: str) -> None:
     assert f"byte-identical to the shipped {kind}-v1.json: yes" in " ".join(result.output.split())
 
 
+@pytest.mark.slow  # about 40 s: two RL² seeds, twice; the default tier keeps Ray's evaluate, retries and resume
 def test_train_one_seed_per_ray_task_gives_the_local_runs(tmp_path: Path) -> None:
     import csv
 
