@@ -7,8 +7,8 @@ protocol's (`training_keys`), every frame labelled with the exact known-worker o
 (`labels`), written in bulk as a LeRobot v3.0 dataset (`bulk_writer`) with `meta/mewa.json`
 (its own metadata; `minari_export` writes Minari's). A wide suite's datasets may play tasks its
 generator draws from the dataset's seed instead of the suite's ten (`generated_tasks`: to learn to adapt to
-a task never seen), or every structure of its generator (`task_structures`), listed in meta/mewa.json. Workers and keys are checked when the dataset is built and
-again when it is loaded (`load_training_dataset`) or downloaded: one curated worker of any suite or
+a task never seen), or every structure of its generator (`task_structures`), listed in meta/mewa.json.
+Workers and keys are checked when the dataset is built and again when it is loaded (`load_training_dataset`) or downloaded: one curated worker of any suite or
 one protocol luck key and the dataset is refused.
 
 This file is longer than 500 lines because the build and the reading share the format: the frame
@@ -358,8 +358,8 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
     optimum = np.concatenate([r.optimum for r in rounds])
     source = behaviour_source(spec.tier, spec.expert_agent)
     h = spec.episodes_per_worker
-    whose = ("generator's task structures" if spec.task_structures else
-             "dataset's generated" if spec.generated_tasks else "suite's")
+    whose, index_doc = (("generator's task structures", STRUCTURE_TASK_INDEX) if spec.task_structures else
+                        ("dataset's generated", GENERATED_TASK_INDEX) if spec.generated_tasks else ("suite's", None))
     lengths = per_episode["lengths"]
     expected = per_episode["expected"]
     n = len(task_idx)
@@ -401,8 +401,7 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
         "total_steps": frames,
         "mewa_bench_version": __version__, "lerobot_version": lerobot_version,
         "build_command": spec.build_command(),
-        "columns": {k: (STRUCTURE_TASK_INDEX if spec.task_structures else GENERATED_TASK_INDEX)
-                    if k == "suite_task_index" and (spec.generated_tasks or spec.task_structures) else v
+        "columns": {k: index_doc if k == "suite_task_index" and index_doc else v
                     for k, v in COLUMN_DOCS.items() if expected is not None or not k.startswith("expected")},
         "tasks": [t.to_dict() for t in suite.tasks],
         "meta_episodes": [{"task": int(task_idx[m]), "worker": workers[m, : suite.tasks[int(task_idx[m])].N].tolist(),
