@@ -8,8 +8,9 @@ protocol's (`training_keys`), every frame labelled with the exact known-worker o
 (its own metadata; `minari_export` writes Minari's). A wide suite's datasets may play tasks its
 generator draws from the dataset's seed instead of the suite's ten (`generated_tasks`: to learn to adapt to
 a task never seen), or every structure of its generator (`task_structures`), listed in meta/mewa.json.
-Workers and keys are checked when the dataset is built and again when it is loaded (`load_training_dataset`) or downloaded: one curated worker of any suite or
-one protocol luck key and the dataset is refused.
+Workers and keys are checked when the dataset is built and again when it is loaded
+(`load_training_dataset`) or downloaded: one curated worker of any suite or one protocol luck key and the
+dataset is refused.
 
 This file is longer than 500 lines because the build and the reading share the format: the frame
 columns and the metadata written here are the ones checked again on loading, beside them.
