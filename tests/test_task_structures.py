@@ -65,6 +65,15 @@ def test_a_task_structures_dataset_lists_and_plays_the_structures(tmp_path) -> N
     index = np.concatenate([pq.read_table(p).column("suite_task_index").to_numpy()
                             for p in sorted((tmp_path / "ds" / "data").rglob("*.parquet"))])
     assert set(index.tolist()) == played and played <= set(range(len(structures)))
+    assert meta["behaviour"]["source"] == "mewa_bench/datasets/generator_histories.py"  # it knows every renaming
     assert "every structure" in meta["columns"]["suite_task_index"]
     assert "task structures" in meta["worker_distribution"]["task_choice"]
     assert "every structure" in buildable_description("wide-v2-train-task-structures", None)["tasks"]
+
+
+def test_a_spec_with_generated_tasks_and_structures_is_a_clear_error() -> None:
+    from mewa_bench.datasets import training_spec
+    from mewa_bench.datasets.training_keys import TrainingDataError
+
+    with pytest.raises(TrainingDataError, match="wide-v2-train-task-structures: a training dataset plays generated"):
+        replace(training_spec("wide-v2-train-task-structures"), generated_tasks=200)

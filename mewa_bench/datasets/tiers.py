@@ -12,7 +12,8 @@ expected return of each episode's behaviour where one is defined.
   (only the worker is hidden from it).
 - `task-inferring-histories`: the same kind of learner told neither task nor worker
   (`inferring_histories`): posterior sampling over (public task, worker). Its behaviour changes within an
-  episode when the task it acts for is ruled out, so no exact expected return is stored.
+  episode when the task it acts for is ruled out, so no exact expected return is stored. On a wide generator's
+  task structures it knows every renaming of every structure (`generator_histories`), as a new task requires.
 """
 
 from __future__ import annotations
@@ -88,15 +89,16 @@ def expert_path(agent: str) -> Path:
     return REPO / "submissions" / agent / "agent.py"
 
 
-def behaviour_source(tier: str, expert_agent: str) -> Path:
-    """The file that defines a tier's behaviour (its sha256 identifies the behaviour)."""
+def behaviour_source(tier: str, expert_agent: str, every_renaming: bool = False) -> Path:
+    """The file that defines a tier's behaviour (its sha256 identifies the behaviour); `every_renaming`: the
+    task-inferring learner knows every renaming of its tasks (a generator's task structures)."""
     here = Path(__file__).resolve().parents[1]
     if tier == "expert":
         return expert_path(expert_agent)
     if tier == "learning-histories":
         return here / "datasets" / "learning_histories.py"
     if tier == "task-inferring-histories":
-        return here / "datasets" / "inferring_histories.py"
+        return here / "datasets" / ("generator_histories.py" if every_renaming else "inferring_histories.py")
     return here / "design" / "policies.py"
 
 
@@ -107,9 +109,10 @@ def file_sha256(path: Path) -> str:
 
 def play_tier(tier: str, suite: str, tasks: tuple[Task, ...], task_index: int, workers: np.ndarray,
               keys: np.ndarray, rng: np.random.Generator, agent_seeds: np.ndarray, expert_agent: str = "bayes-explorer",
-              jobs: int = 1, map_tasks: MapTasks | None = None) -> TierRun:
+              jobs: int = 1, map_tasks: MapTasks | None = None, every_renaming: bool = False) -> TierRun:
     """Play a tier on meta-episodes of task `tasks[task_index]`: one worker per row of `workers` [M, 4], the
-    luck keys of its episodes in the row of `keys` [M, H]."""
+    luck keys of its episodes in the row of `keys` [M, H]; `every_renaming`: the task-inferring learner knows every
+    renaming of `tasks`, not only `tasks`."""
     task = tasks[task_index]
     n_meta, n_ep = keys.shape
     if tier in ("random", "random-task-specific"):
@@ -125,9 +128,11 @@ def play_tier(tier: str, suite: str, tasks: tuple[Task, ...], task_index: int, w
         return TierRun(played, chosen.reshape(-1))
     if tier == "task-inferring-histories":
         from mewa_bench.datasets.expert_rollout import play_in_chunks
+        from mewa_bench.datasets.generator_histories import play_generator_histories
         from mewa_bench.datasets.pool_models import play_pool_histories
 
-        played = play_in_chunks(play_pool_histories, (tasks,), np.full(n_meta, task_index), workers, keys,
+        play = play_generator_histories if every_renaming else play_pool_histories
+        played = play_in_chunks(play, (tasks,), np.full(n_meta, task_index), workers, keys,
                                 agent_seeds, jobs, map_tasks)
         return TierRun(played, np.full(n_meta * n_ep, ADAPTIVE, dtype=np.int64))
     if tier == "expert":

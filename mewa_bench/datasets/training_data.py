@@ -71,6 +71,11 @@ class TrainingSpec:
     generated_tasks: int = 0  # 0: the suite's tasks; n: n tasks its generator draws from this dataset's seed
     task_structures: bool = False  # the suite's tasks or the generated ones; true: every structure of its generator
 
+    def __post_init__(self) -> None:
+        if self.generated_tasks and self.task_structures:
+            raise TrainingDataError(f"{self.name}: a training dataset plays generated tasks (generated_tasks="
+                                    f"{self.generated_tasks}) or the generator's task structures, not both")
+
     @property
     def built_name(self) -> str:
         """The name of what is built: the registry name, with `-frames<N>` for another frame target than its own."""
@@ -186,7 +191,7 @@ def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Gen
             check_training_workers(suite.tasks[i], workers[rows], f"{spec.name}: task {i}")
             seeds = np.array([_seed_int(f"{spec.seed_id}/agent/{first + r}") for r in rows], dtype=np.int64)
             groups.append(_Group(rows, play_tier(spec.tier, suite.name, suite.tasks, i, workers[rows], keys[rows], rng,
-                                                 seeds, spec.expert_agent, jobs, map_tasks)))
+                                                 seeds, spec.expert_agent, jobs, map_tasks, spec.task_structures)))
     return task_idx, workers, keys, groups
 
 
@@ -357,7 +362,7 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
     random_value = np.concatenate([r.random_value for r in rounds])
     max_expected = np.concatenate([r.max_expected for r in rounds])
     optimum = np.concatenate([r.optimum for r in rounds])
-    source = behaviour_source(spec.tier, spec.expert_agent)
+    source = behaviour_source(spec.tier, spec.expert_agent, spec.task_structures)
     h = spec.episodes_per_worker
     whose, index_doc = (("generator's task structures", STRUCTURE_TASK_INDEX) if spec.task_structures else
                         ("dataset's generated", GENERATED_TASK_INDEX) if spec.generated_tasks else ("suite's", None))
