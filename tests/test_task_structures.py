@@ -39,6 +39,7 @@ def test_every_task_the_generator_draws_is_a_renaming_of_exactly_one_structure(n
     found = [renamed.get(game_of(task)) for task in drawn]
     assert all(f is not None and len(f) == 1 for f in found), [t.name for t, f in zip(drawn, found) if not f]
     assert len({next(iter(f)) for f in found}) > 100  # the draws spread over the structures
+    assert task_structures(suite, ks=(3, 5)) == tuple(t for t in structures if t.K in (3, 5))  # the same, named alike
 
 
 def test_a_narrow_suite_has_no_structures() -> None:

@@ -39,21 +39,25 @@ def generated_tasks(suite: Suite, count: int, rng: np.random.Generator) -> tuple
     return tuple(out)
 
 
-def task_structures(suite: Suite) -> tuple[Task, ...]:
+def task_structures(suite: Suite, ks: tuple[int, ...] = (3, 4, 5)) -> tuple[Task, ...]:
     """Every task structure of `suite`'s generator once (N in 3, 4; K in 3..5; M in 3..K; each composition of the
     worker blocks), colours 0..N-1 completed in that order, named `structure-<i>-n<N>-k<K>-m<M>`: 168 on the
-    wide suites, each of the generator's tasks a renaming of one (`game.relabel.relabelled_task`)."""
+    wide suites, each of the generator's tasks a renaming of one (`game.relabel.relabelled_task`). `ks`: only the
+    structures with these K (Eq. 1's design of each (N, M) takes seconds)."""
     if suite.content.get("suite") != "wide":
         raise ValueError(f"{suite.name} has one task, not a task generator: task structures need a wide suite")
     families = int(suite.content["version"]) >= 2
     out = []
-    for n, k in itertools.product((3, 4), (3, 4, 5)):
-        for m, cuts in itertools.product(range(3, k + 1), itertools.combinations(range(1, WORKER_BLOCK_TOTAL), n - 2)):
-            blocks = tuple(int(b) for b in np.diff((0, *cuts, WORKER_BLOCK_TOTAL))) + (0,)
-            colours = tuple(range(n))
-            task, _ = designed(Task(colors=colours, order=colours, K=k, M=m, rewards=tuple(-1.0 + 0.1 * i for i in range(n)),
-                                    worker_blocks=blocks, name=""), families)
-            out.append(Task.from_dict({**task.to_dict(), "name": f"structure-{len(out):03d}-n{n}-k{k}-m{m}"}))
+    every = [(n, k, m, cuts) for n, k in itertools.product((3, 4), (3, 4, 5))
+             for m, cuts in itertools.product(range(3, k + 1), itertools.combinations(range(1, WORKER_BLOCK_TOTAL), n - 2))]
+    for i, (n, k, m, cuts) in enumerate(every):
+        if k not in ks:
+            continue
+        blocks = tuple(int(b) for b in np.diff((0, *cuts, WORKER_BLOCK_TOTAL))) + (0,)
+        colours = tuple(range(n))
+        task, _ = designed(Task(colors=colours, order=colours, K=k, M=m, rewards=tuple(-1.0 + 0.1 * j for j in range(n)),
+                                worker_blocks=blocks, name=""), families)
+        out.append(Task.from_dict({**task.to_dict(), "name": f"structure-{i:03d}-n{n}-k{k}-m{m}"}))
     return tuple(out)
 
 
