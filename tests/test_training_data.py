@@ -289,12 +289,29 @@ def _tree(root: Path) -> dict[str, str]:
 def test_a_rebuild_gives_the_same_bytes_and_sha256(built, tmp_path):
     for key in (("narrow-v2", "learning-histories"), ("wide-v2", "random-task-specific"), GENERATED):
         again = tmp_path / f"{key[0]}-{key[1]}"
-        build_training_dataset(small_spec(*key), again, jobs=2)  # parallel exact values: the same bytes
+        reports: list[tuple[str, int, int]] = []
+        # parallel exact values, reported as they go: the same bytes
+        build_training_dataset(small_spec(*key), again, jobs=2, progress=lambda *report: reports.append(report))
         assert _tree(again) == _tree(built[key])
+        _check_progress(reports, small_spec(*key).frames, frames(again))
         a = pack_dataset(built[key], tmp_path / "a", "x", "1", key[0], key[1])
         b = pack_dataset(again, tmp_path / "b", "x", "1", key[0], key[1])
         assert a["sha256"] == b["sha256"] and a["kind"] == "training"
         assert a["ref_max_score"] == meta(again)["ref_max_score"]
+
+
+def _check_progress(reports: list[tuple[str, int, int]], target: int, columns: pd.DataFrame) -> None:
+    """A build's progress reports: phases in order, each from 0 to its total; the frames played add up to the
+    dataset's, past the target only by whole rounds."""
+    assert [phase for phase, _, _ in reports] == sorted((phase for phase, _, _ in reports),
+                                                        key=["play", "exact", "write"].index)
+    for phase in ("play", "exact", "write"):
+        mine = [(done, total) for p, done, total in reports if p == phase]
+        assert mine[0][0] == 0 and len(mine) >= 2, (phase, mine)
+        assert all(a[0] <= b[0] for a, b in zip(mine, mine[1:])), (phase, mine)
+        assert mine[-1][0] == mine[-1][1], (phase, mine)
+    play = [(done, total) for p, done, total in reports if p == "play"]
+    assert play[0] == (0, target) and play[-1][0] == len(columns["action"]) >= target
 
 
 def test_lerobot_reads_every_dataset(built):

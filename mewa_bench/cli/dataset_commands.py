@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import typer
 from rich.markup import escape
-from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TransferSpeedColumn
+from rich.progress import (BarColumn, DownloadColumn, MofNCompleteColumn, Progress, TaskID, TextColumn,
+                           TimeElapsedColumn, TransferSpeedColumn)
 from rich.table import Table
 
 from mewa_bench.cli.options import _ray_option
@@ -128,9 +131,9 @@ def datasets_build(name: str = typer.Argument(..., metavar="NAME", help="A train
     where = _ray_option(ray, address)
     if where is not None:
         from mewa_bench.protocol.ray_backend import session
-    with console.status(f"building {name}" + (" on Ray" if where else "")), \
+    with _build_progress(f"{name}" + (" on Ray" if where else "")) as progress, \
             (session(where) if where is not None else nullcontext()):
-        result = _or_exit(lambda: build_named(name, out, frames, jobs, catalog, ray_tasks if where else None))
+        result = _or_exit(lambda: build_named(name, out, frames, jobs, catalog, ray_tasks if where else None, progress))
     e = result.entry
     if result.spec.built_name != result.spec.name:
         console.print(f"built {result.spec.built_name}: the first {e['frames']:,} frames' worth of {result.spec.name} "
@@ -142,6 +145,24 @@ def datasets_build(name: str = typer.Argument(..., metavar="NAME", help="A train
         verdict = "[green]matches[/green]" if result.matches_record else "[yellow]differs from[/yellow]"
         console.print(f"the archive {verdict} the sha256 the shipped catalog records for this build")
     console.print(f"load it: mewa_bench.datasets.load_training_dataset('{result.root}')")
+
+
+BUILD_PHASES = {"play": "playing (frames)", "exact": "exact labels and values (jobs)", "write": "writing",
+                "pack": "packing"}
+
+
+@contextmanager
+def _build_progress(what: str) -> Iterator[Callable[[str, int, int], None]]:
+    """A rich progress bar per build phase; yields the `progress(phase, done, total)` a build reports to."""
+    with Progress(TextColumn(f"{escape(what)}: {{task.description}}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=console, transient=True) as bars:
+        tasks: dict[str, TaskID] = {}
+
+        def progress(phase: str, done: int, total: int) -> None:
+            if phase not in tasks:
+                tasks[phase] = bars.add_task(BUILD_PHASES.get(phase, phase), total=total)
+            bars.update(tasks[phase], completed=done, total=total)
+        yield progress
 
 
 @datasets_app.command("export")

@@ -18,7 +18,7 @@ from typing import Any
 from mewa_bench.datasets.expert_rollout import MapTasks
 from mewa_bench.datasets.catalog import DatasetError, add_to_catalog, default_catalog_path, load_catalog, recorded_build
 from mewa_bench.datasets.pack import pack_dataset
-from mewa_bench.datasets.training_data import TrainingSpec, build_training_dataset, training_spec
+from mewa_bench.datasets.training_data import BuildProgress, TrainingSpec, build_training_dataset, training_spec
 
 BEHAVIOUR_NAMES = {"random": "random", "random-task-specific": "random-task-specific",
                    "learning-histories": "posterior-sampling-toptimal",
@@ -49,9 +49,10 @@ def behaviour_name(spec: TrainingSpec) -> str:
 
 
 def build_named(name: str, out_dir: Path | str, frames: int | None = None, jobs: int = 2,
-                catalog: Path | str | None = None, map_tasks: MapTasks | None = None) -> BuildResult:
+                catalog: Path | str | None = None, map_tasks: MapTasks | None = None,
+                progress: BuildProgress = lambda phase, done, total: None) -> BuildResult:
     """Build, pack and catalog the training dataset `name` under `out_dir` (its parallel work in `jobs` processes, or
-    as `map_tasks`, e.g. `training_data.ray_tasks`)."""
+    as `map_tasks`, e.g. `training_data.ray_tasks`); `progress` as `build_training_dataset`'s, and ("pack", 0|1, 1)."""
     spec = training_spec(name, frames)
     out_dir = Path(out_dir)
     root = out_dir / spec.built_name
@@ -59,12 +60,14 @@ def build_named(name: str, out_dir: Path | str, frames: int | None = None, jobs:
     if catalog_path.exists():
         load_catalog(catalog_path)  # a broken catalog fails before the build
     start = time.perf_counter()
-    build_training_dataset(spec, root, jobs, map_tasks=map_tasks)
+    build_training_dataset(spec, root, jobs, map_tasks=map_tasks, progress=progress)
     built = time.perf_counter()
+    progress("pack", 0, 1)
     entry = pack_dataset(root, out_dir, spec.built_name, spec.version, spec.suite, behaviour_name(spec),
                          catalog_dir=catalog_path.parent)
     add_to_catalog(catalog_path, entry)
     packed = time.perf_counter()
+    progress("pack", 1, 1)
     return BuildResult(spec, root, entry, catalog_path, built - start, packed - built, _recorded(spec))
 
 

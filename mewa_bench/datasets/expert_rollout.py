@@ -119,14 +119,14 @@ def play_in_chunks(play: Callable[..., Played], head: tuple, task_idx: np.ndarra
         return play(*head, task_idx, workers, keys, seeds)
     chunks = np.array_split(np.arange(len(keys)), min(jobs * 4, len(keys)))
     args = [(*head, task_idx[c], workers[c], keys[c], seeds[c]) for c in chunks]
-    parts = map_tasks(play, args) if map_tasks is not None else list(_pool(jobs).map(play, *zip(*args)))
+    parts = map_tasks(play, args) if map_tasks is not None else list(shared_pool(jobs).map(play, *zip(*args)))
     return concat_played(parts)
 
 
 _POOLS: dict[int, ProcessPoolExecutor] = {}
 
 
-def _pool(jobs: int) -> ProcessPoolExecutor:
+def shared_pool(jobs: int) -> ProcessPoolExecutor:
     """A process pool kept for the life of the process (its processes keep the agent and its task models
     loaded from one round of meta-episodes to the next); shut down at exit."""
     import atexit

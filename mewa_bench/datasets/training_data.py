@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from mewa_bench.datasets.expert_rollout import MapTasks
+from mewa_bench.datasets.expert_rollout import MapTasks, shared_pool
 from mewa_bench.datasets.generated_tasks import generated_tasks, task_structures, with_tasks
 from mewa_bench.datasets.labels import optimal_labels
 from mewa_bench.datasets.tiers import (ADAPTIVE, PROTOCOL_EPISODES, TIERS, TierRun, behaviour_source,
@@ -177,8 +177,10 @@ class _Group:
 
 
 def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Generator, jobs: int,
-                map_tasks: MapTasks | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[_Group]]:
-    """Sample `meta_batch` meta-train workers (checked) and play the tier on them, task by task."""
+                map_tasks: MapTasks | None = None, played_frames: Callable[[int], None] = lambda frames: None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[_Group]]:
+    """Sample `meta_batch` meta-train workers (checked) and play the tier on them, task by task (`played_frames`
+    told each task's frames as they are played)."""
     m, h = spec.meta_batch, spec.episodes_per_worker
     task_idx, workers = sample_training_pairs(suite.tasks, rng, m)
     meta = np.repeat(np.arange(first, first + m), h)
@@ -192,6 +194,7 @@ def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Gen
             seeds = np.array([_seed_int(f"{spec.seed_id}/agent/{first + r}") for r in rows], dtype=np.int64)
             groups.append(_Group(rows, play_tier(spec.tier, suite.name, suite.tasks, i, workers[rows], keys[rows], rng,
                                                  seeds, spec.expert_agent, jobs, map_tasks, spec.task_structures)))
+            played_frames(len(groups[-1].run.played.t))
     return task_idx, workers, keys, groups
 
 
@@ -423,12 +426,18 @@ def _metadata(spec: TrainingSpec, suite: Suite, rounds: list[_Round], per_episod
     }
 
 
+BuildProgress = Callable[[str, int, int], None]  # (phase: play, exact or write; done; total) as a build goes
+
+
 def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
-                           timings: dict[str, float] | None = None, map_tasks: MapTasks | None = None) -> dict[str, Any]:
+                           timings: dict[str, float] | None = None, map_tasks: MapTasks | None = None,
+                           progress: BuildProgress = lambda phase, done, total: None) -> dict[str, Any]:
     """Build a training dataset into `root` (must not exist; written beside it, then renamed); returns its
-    meta/mewa.json content. `timings`, if given, receives the seconds of each phase (play, exact, write).
-    The expert's play and the exact values run in `jobs` local processes, or as `map_tasks` (e.g. Ray tasks:
-    `ray_tasks`) when given, in `jobs` x 4 chunks per round; the bytes are the same either way."""
+    meta/mewa.json content. `timings`, if given, receives the seconds of each phase (play, exact, write);
+    `progress` is told each phase's advance: frames played (of the target: whole rounds may pass it), exact jobs
+    done, the dataset written. The expert's play and the exact values run in `jobs` local processes, or as
+    `map_tasks` (e.g. Ray tasks: `ray_tasks`) when given, in `jobs` x 4 chunks per round; the bytes are the same
+    either way."""
     import time
 
     from mewa_bench.datasets.bulk_writer import write_lerobot_dataset
@@ -445,12 +454,20 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     clock = [time.perf_counter()]
     played = []
     frames, nearest = 0, np.inf
+    shown = [0]  # frames reported so far, task by task
+
+    def played_frames(count: int) -> None:
+        shown[0] += count
+        progress("play", shown[0], max(spec.frames, shown[0]))
+
+    progress("play", 0, spec.frames)
     while frames < spec.frames:
-        played.append(_play_round(spec, suite, len(played) * spec.meta_batch, rng, jobs, map_tasks))
+        played.append(_play_round(spec, suite, len(played) * spec.meta_batch, rng, jobs, map_tasks, played_frames))
         frames += sum(len(g.run.played.t) for g in played[-1][3])
     clock.append(time.perf_counter())
-    exact = _exact_by_group(spec, suite, played, jobs, map_tasks)
+    exact = _exact_by_group(spec, suite, played, jobs, map_tasks, lambda done, total: progress("exact", done, total))
     clock.append(time.perf_counter())
+    progress("write", 0, 1)
     rounds, k = [], 0
     for task_idx, workers, keys, groups in played:
         rounds.append(_merge_groups(spec, task_idx, workers, keys, groups, exact[k : k + len(groups)]))
@@ -473,6 +490,7 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     finally:
         shutil.rmtree(work, ignore_errors=True)
     clock.append(time.perf_counter())
+    progress("write", 1, 1)
     if timings is not None:
         timings.update(zip(("play", "exact", "write"), np.diff(clock).tolist()))
     return meta
@@ -482,10 +500,12 @@ EXACT_BATCH = 256  # workers per exact job: the groups of one task are pooled ac
 
 
 def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs: int,
-                    map_tasks: MapTasks | None = None) -> list[tuple]:
+                    map_tasks: MapTasks | None = None,
+                    progress: Callable[[int, int], None] = lambda done, total: None) -> list[tuple]:
     """`exact_values` of every (round, task) group, in order. Groups of one task are pooled into jobs of about
     EXACT_BATCH workers (a wide suite's round holds a few workers per task; each worker's numbers are
-    computed column by column, so pooling changes no value)."""
+    computed column by column, so pooling changes no value); `progress` told the jobs done after every
+    `jobs` x 8 of them (local processes) or all of them (`map_tasks`)."""
     h = spec.episodes_per_worker
     groups = [(int(task_idx[g.rows[0]]), workers[g.rows], g.run.played) for task_idx, workers, _, gs in played
               for g in gs]
@@ -504,7 +524,12 @@ def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs:
                               np.concatenate([groups[k][2].state for k in batch])))
             members.append(batch)
     out: list[tuple] = [()] * len(groups)
-    for batch, (labels, optimum, values) in zip(members, (map_tasks or process_map(jobs))(exact_values, jobs_args)):
+    results, step = [], max(1, jobs) * 8 if map_tasks is None else max(1, len(jobs_args))  # all at once on Ray
+    progress(0, len(jobs_args))
+    for first in range(0, len(jobs_args), step):
+        results += (map_tasks or process_map(jobs))(exact_values, jobs_args[first : first + step])
+        progress(len(results), len(jobs_args))
+    for batch, (labels, optimum, values) in zip(members, results):
         frame_edges = np.cumsum([0] + [len(groups[k][2].t) for k in batch])
         worker_edges = np.cumsum([0] + [len(groups[k][1]) for k in batch])
         for j, k in enumerate(batch):
@@ -514,15 +539,11 @@ def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs:
 
 
 def process_map(jobs: int) -> MapTasks:
-    """A `MapTasks` over `jobs` local processes (in this process when `jobs` is 1)."""
+    """A `MapTasks` over `jobs` local processes, the ones the play used (in this process when `jobs` is 1)."""
     def run(function: Callable[..., Any], args: list[tuple]) -> list:
         if jobs <= 1 or len(args) < 2:
             return [function(*a) for a in args]
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            return list(pool.map(function, *zip(*args)))
+        return list(shared_pool(jobs).map(function, *zip(*args)))
     return run
 
 
