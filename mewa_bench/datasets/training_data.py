@@ -177,7 +177,7 @@ class _Group:
 
 
 def _play_round(spec: TrainingSpec, suite: Suite, first: int, rng: np.random.Generator, jobs: int,
-                map_tasks: MapTasks | None = None, played_frames: Callable[[int], None] = lambda frames: None
+                map_tasks: MapTasks | None, played_frames: Callable[[int], None]
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[_Group]]:
     """Sample `meta_batch` meta-train workers (checked) and play the tier on them, task by task (`played_frames`
     told each task's frames as they are played)."""
@@ -454,16 +454,15 @@ def build_training_dataset(spec: TrainingSpec, root: Path | str, jobs: int = 2,
     clock = [time.perf_counter()]
     played = []
     frames, nearest = 0, np.inf
-    shown = [0]  # frames reported so far, task by task
 
     def played_frames(count: int) -> None:
-        shown[0] += count
-        progress("play", shown[0], max(spec.frames, shown[0]))
+        nonlocal frames
+        frames += count
+        progress("play", frames, max(spec.frames, frames))
 
     progress("play", 0, spec.frames)
     while frames < spec.frames:
         played.append(_play_round(spec, suite, len(played) * spec.meta_batch, rng, jobs, map_tasks, played_frames))
-        frames += sum(len(g.run.played.t) for g in played[-1][3])
     clock.append(time.perf_counter())
     exact = _exact_by_group(spec, suite, played, jobs, map_tasks, lambda done, total: progress("exact", done, total))
     clock.append(time.perf_counter())
@@ -525,9 +524,10 @@ def _exact_by_group(spec: TrainingSpec, suite: Suite, played: list[tuple], jobs:
             members.append(batch)
     out: list[tuple] = [()] * len(groups)
     results, step = [], max(1, jobs) * 8 if map_tasks is None else max(1, len(jobs_args))  # all at once on Ray
+    run_jobs = map_tasks or process_map(jobs)
     progress(0, len(jobs_args))
     for first in range(0, len(jobs_args), step):
-        results += (map_tasks or process_map(jobs))(exact_values, jobs_args[first : first + step])
+        results += run_jobs(exact_values, jobs_args[first : first + step])
         progress(len(results), len(jobs_args))
     for batch, (labels, optimum, values) in zip(members, results):
         frame_edges = np.cumsum([0] + [len(groups[k][2].t) for k in batch])
