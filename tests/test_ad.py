@@ -121,6 +121,24 @@ def test_ad_learns_to_adapt_to_two_opposite_workers_from_data_alone(tmp_path: Pa
     assert_adapts_and_beats_the_best_fixed_policy(*judge(checkpoint, 20, played_as_submitted))
 
 
+def test_a_run_is_deterministic_for_its_seed_and_thread_count(tmp_path: Path) -> None:
+    """Two runs on two threads give the same weights; the caller's thread count is restored after training and a
+    count below 1 is a clear error."""
+    data = ad.windows_from(learner_histories(16, 10, 0))
+    base = ad.Settings(suite="narrow-v1", total_steps=12 * 8, batch=8, d_model=32, layers=2, context=256)
+    before = torch.get_num_threads()
+
+    def weights(threads: int, name: str) -> dict:
+        checkpoint = ad.train(replace(base, threads=threads), tmp_path / name, data=data)
+        return torch.load(checkpoint, weights_only=False)["model"]
+
+    first, second = weights(2, "a"), weights(2, "b")
+    assert all(torch.equal(first[k], second[k]) for k in first)
+    assert torch.get_num_threads() == before
+    with pytest.raises(ValueError, match="threads 0: expected at least 1"):
+        ad.train(replace(base, threads=0), tmp_path / "d", data=data)
+
+
 def test_train_ad_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) -> None:
     from typer.testing import CliRunner
 

@@ -25,8 +25,9 @@ datasets build`, by default a learning-histories tier), the supervised training 
   meets every colouring of the task structures (N, K, M, worker blocks) it is trained on, not only the
   colourings in its data.
 - Training: cross-entropy on every frame of `batch` windows per update, drawn with the run's generator;
-  AdamW; `total_steps` counts windows seen. Deterministic for its seed on one machine (torch's CPU
-  kernels, one thread). No environment interaction.
+  AdamW; `total_steps` counts windows seen. Deterministic for its seed and `threads` on one machine
+  (torch's CPU kernels on that many threads, one by default; another count sums in another order, so its
+  bytes differ, as reproducibly). No environment interaction.
 - Playing: `causal_transformer.TransformerLanes` (as DPT's agent): per lane a key/value cache allocated
   once, one token's pass per step for all lanes. Greedy by default (the most likely action), except that
   the first `sample_episodes` episodes of a pair sample from the predicted distribution with the lane's
@@ -85,6 +86,7 @@ class Settings:
     greedy: bool = True  # how the submission's agent.py plays: the most likely action (false: sampled)
     sample_episodes: int = 1  # when greedy: the first episodes of a pair that still sample
     checkpoint_every: int = 100  # updates
+    threads: int = 1  # torch's CPU threads while training (a run is deterministic for its seed and this count)
     workers: list[list[float]] = field(default_factory=list)  # not used: the dataset decides the workers
 
     @property
@@ -190,9 +192,23 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Windows | N
     """Train (or resume) a run in `out` on `data` (default: the settings' datasets' sequences); the checkpoint
     path."""
     torch = _torch()
-    torch.set_num_threads(1)
+    if settings.threads < 1:
+        raise ValueError(f"threads {settings.threads}: expected at least 1")
     if settings.label not in LABELS:
         raise ValueError(f"label {settings.label!r}: expected one of {', '.join(LABELS)}")
+    callers = torch.get_num_threads()
+    torch.set_num_threads(settings.threads)
+    try:
+        _fit(settings, out, resume, data, progress)
+    finally:
+        torch.set_num_threads(callers)
+    return out / CHECKPOINT
+
+
+def _fit(settings: Settings, out: Path, resume: bool, data: Windows | None,
+         progress: Callable[[int, int, dict[str, float]], None]) -> None:
+    """The training loop of `train`, on torch's threads as they are set."""
+    torch = _torch()
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
     state = resumed(out, settings, resume)
@@ -214,7 +230,6 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Windows | N
                 group["lr"] = settings.learning_rate * 0.5 * (1.0 + np.cos(np.pi * update / updates))
         logits = model(tokens, episode, valid)
         fit_labels(model, optimizer, logits, label, valid, settings, update, updates, began, out, progress)
-    return out / CHECKPOINT
 
 
 class ADVectorAgent(TransformerLanes):
