@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -50,3 +51,22 @@ def test_a_shipped_checkpoint_replays_its_committed_units(results_path: Path, tm
         old = by_key[(unit["pair"], unit["seed"])]
         for field in ("env_seeds", "returns", "normalised_returns", "lengths"):
             assert unit[field] == old[field], (results_path.name, unit["pair"], unit["seed"], field)
+
+
+OFFLINE_RUNS = sorted(p for p in SUBMISSIONS.glob("*/run.json")
+                      if json.loads(p.read_text()).get("settings", {}).get("dataset"))
+
+
+@pytest.mark.skipif(not OFFLINE_RUNS, reason="no offline runs shipped")
+def test_every_offline_run_names_the_recorded_archive_it_learnt_from() -> None:
+    """An offline run's run.json names its dataset and that build's archive sha256, as the catalog records it."""
+    from mewa_bench.datasets.catalog import load_catalog
+
+    catalog = load_catalog(SUBMISSIONS.parent / "datasets" / "index.json")
+    builds = {(b["name"], b["sha256"]) for b in catalog.get("builds", [])}
+    for path in OFFLINE_RUNS:
+        info = json.loads(path.read_text())
+        name = Path(info["settings"]["dataset"]).name
+        found = re.search(rf"trained on {re.escape(name)}\b.*?archive sha256 ([0-9a-f]{{64}})", info.get("notes", ""))
+        assert found, f"{path}: notes do not name {name}'s archive sha256"
+        assert (name, found.group(1)) in builds, f"{path}: {name} {found.group(1)} is not a recorded build"
