@@ -463,6 +463,14 @@ def test_the_strongest_learned_adapter_is_called_adaptive_over_its_runs(suite: s
     assert ad["adapts"] == "yes" and ad["adapting_runs"] == "3"
 
 
+def test_ad_on_the_task_structures_adapts_over_its_runs_on_wide_v2() -> None:
+    """`ad-task-structures` never trained on wide-v2's tasks (only the generator's structures, renamed): its three
+    runs adapt and their interval over runs is above the best fixed policy."""
+    row = {r["algorithm"]: r for r in read_csv(REPO / "leaderboards" / "wide-v2-algorithms.csv")}["ad-task-structures"]
+    assert row["runs"] == "3" and row["intervals"] == "over runs" and row["adapting_runs"] == "3"
+    assert row["adapts"] == "yes" and float(row["gap_won_low"]) > 0 and float(row["gap_won"]) > 0.5
+
+
 def rliable_check(cells_csv: Path, algorithms_csv: Path) -> int:
     """rliable's mean and IQM of every algorithm's [runs, pairs] cells equal the algorithms table's (to 1e-4);
     the number of algorithms checked."""

@@ -1,0 +1,14 @@
+"""AD agent trained by `mewa-bench train ad --algorithm ad-task-structures --set anneal=true --set rename_colours=true --set d_model=128 --set layers=4 --set threads=2 --suite wide-v2 --seed 1 --steps 64000 --out submissions/ad-task-structures-wide-v2-seed1 --dataset mewa-datasets/wide-v2-train-task-structures`; plays the checkpoint beside this file.
+
+Evaluate it: `mewa-bench evaluate submissions/ad-task-structures-wide-v2-seed1/agent.py --suite wide-v2`.
+"""
+
+from pathlib import Path
+
+from mewa_bench.agents.ad import ADVectorAgent
+
+PRIVILEGED = False
+
+
+def make_vector_agent(observation_space, action_space, num_lanes, seed="0", checkpoint=None, greedy="true"):
+    return ADVectorAgent(checkpoint or Path(__file__).with_name("checkpoint.pt"), num_lanes, seed=seed, greedy=greedy)
