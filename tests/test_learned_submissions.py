@@ -67,6 +67,6 @@ def test_every_offline_run_names_the_recorded_archive_it_learnt_from() -> None:
     for path in OFFLINE_RUNS:
         info = json.loads(path.read_text())
         name = Path(info["settings"]["dataset"]).name
-        found = re.search(rf"trained on {re.escape(name)}\b.*?archive sha256 ([0-9a-f]{{64}})", info.get("notes", ""))
+        found = re.search(rf"trained on {re.escape(name)}[ (].*?archive sha256 ([0-9a-f]{{64}})", info.get("notes", ""))
         assert found, f"{path}: notes do not name {name}'s archive sha256"
         assert (name, found.group(1)) in builds, f"{path}: {name} {found.group(1)} is not a recorded build"

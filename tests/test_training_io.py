@@ -16,7 +16,7 @@ from mewa_bench.agents import training_io
 from mewa_bench.agents.training_io import (ALGORITHMS, UnknownAlgorithm, append_metrics, available_algorithms,
                                            episode_end_scores, keep_metrics_until, load_algorithm, load_checkpoint,
                                            make_meta_env, normalised_returns_paid, save_checkpoint, settings_with,
-                                           workers_arg, write_submission)
+                                           torch_threads, workers_arg, write_submission)
 
 
 @dataclass
@@ -53,6 +53,29 @@ def test_every_available_algorithm_offers_what_the_train_command_calls(name: str
     with pytest.raises(ValueError, match="no_such_setting"):
         module.settings_from({"no_such_setting": 1})
     assert callable(module.train_run) and module.METRICS.endswith(".csv")
+
+
+def test_torch_threads_sets_the_count_inside_and_gives_the_callers_back() -> None:
+    callers = torch.get_num_threads()
+    with torch_threads(callers + 1):
+        assert torch.get_num_threads() == callers + 1
+    with pytest.raises(RuntimeError, match="inside"), torch_threads(callers + 1):
+        raise RuntimeError("inside")
+    assert torch.get_num_threads() == callers
+    with pytest.raises(ValueError, match="threads 0: expected at least 1"), torch_threads(0):
+        pass
+
+
+@pytest.mark.parametrize("name", available_algorithms())
+def test_every_trainer_gives_the_callers_thread_count_back_even_when_it_fails(name: str, tmp_path: Path) -> None:
+    module = load_algorithm(name)
+    out = tmp_path / "a-file"
+    out.write_text("not a folder")
+    callers = torch.get_num_threads()
+    with torch_threads(callers + 2):
+        with pytest.raises(FileExistsError):
+            module.train(module.settings_from({}), out)
+        assert torch.get_num_threads() == callers + 2
 
 
 def test_settings_with_checks_names_and_keeps_the_base() -> None:

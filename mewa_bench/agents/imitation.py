@@ -38,7 +38,7 @@ import numpy as np
 
 from mewa_bench.agents.lanes import RecurrentLanes, truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, fit_labels, load_for_play, offline_settings,
-                                           restore, resumed, torch_module)
+                                           restore, resumed, torch_module, torch_threads)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane
 
@@ -107,6 +107,7 @@ def make_policy(hidden: int) -> Any:
     return ImitationPolicy()
 
 
+@torch_threads(1)
 def train(settings: Settings, out: Path, resume: bool = False, data: Any = None,
           progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
     """Train (or resume) a run in `out` on `data` (a `MetaEpisodeDataset`; default: the settings' dataset's
@@ -114,7 +115,6 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Any = None,
     from mewa_bench.datasets.meta_episodes import MetaEpisodeDataset, pad_batch
 
     torch = _torch()
-    torch.set_num_threads(1)
     if settings.label not in LABELS:
         raise ValueError(f"label {settings.label!r}: expected one of {', '.join(LABELS)}")
     out.mkdir(parents=True, exist_ok=True)

@@ -49,7 +49,7 @@ from mewa_bench.agents.lanes import LaneGenerators, LaneSteps, pick_actions, tru
 from mewa_bench.protocol.agent import SingleLane, state_vector
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, load_for_play,
                                            make_meta_env, mean_or_nan, restore, resumed, save_checkpoint, settings_with,
-                                           torch_module, write_submission)
+                                           torch_module, torch_threads, write_submission)
 
 __all__ = ["CHECKPOINT", "METRICS", "MAMLAgent", "MAMLVectorAgent", "Settings", "make_agent", "settings_from", "train", "train_run"]
 
@@ -197,6 +197,7 @@ class EpisodeBuffer:
         return out
 
 
+@torch_threads(1)
 def train(settings: Settings, out: Path, resume: bool = False,
           progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
     """Train (or resume) a run in `out`: checkpoints and metrics written as they come; the checkpoint path.
@@ -204,8 +205,6 @@ def train(settings: Settings, out: Path, resume: bool = False,
     A resumed run restarts its rollouts from the checkpoint's update (fresh pairs and random streams
     derived from the seed and that update): deterministic, but not the bytes of an uninterrupted run."""
     torch = _torch()
-
-    torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
     state = resumed(out, settings, resume)

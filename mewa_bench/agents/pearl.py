@@ -59,7 +59,7 @@ from mewa_bench.protocol.agent import SingleLane, state_vector
 from mewa_bench.agents.lanes import LaneGenerators, LaneSteps, pick_actions, truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, load_for_play,
                                            make_meta_env, mean_or_nan, restore, resumed, save_checkpoint, settings_with,
-                                           torch_module, write_submission)
+                                           torch_module, torch_threads, write_submission)
 
 __all__ = ["CHECKPOINT", "METRICS", "PEARLAgent", "PEARLVectorAgent", "Settings", "make_agent", "settings_from", "train", "train_run"]
 
@@ -294,6 +294,7 @@ def sample_latent(model: Any, context: Any, mask: Any, noise: Any) -> Any:
     return mean + var.sqrt() * noise
 
 
+@torch_threads(1)
 def train(settings: Settings, out: Path, resume: bool = False,
           progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
     """Train (or resume) a run in `out`: checkpoints and metrics written as they come; the checkpoint path.
@@ -306,7 +307,6 @@ def train(settings: Settings, out: Path, resume: bool = False,
     if settings.buffer_pairs < 10 * settings.num_envs:  # a pair still being played must never lose its slot
         raise ValueError(f"PEARL setting buffer_pairs={settings.buffer_pairs} must be at least 10 x num_envs "
                          f"({10 * settings.num_envs})")
-    torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
     state = resumed(out, settings, resume)

@@ -38,7 +38,7 @@ import numpy as np
 from mewa_bench.agents.lanes import RecurrentLanes, truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, append_metrics, episode_end_scores, load_for_play,
                                            make_meta_env, mean_or_nan, normalised_returns_paid, restore, resumed,
-                                           save_checkpoint, settings_with, torch_module, workers_arg)
+                                           save_checkpoint, settings_with, torch_module, torch_threads, workers_arg)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane
 
@@ -113,6 +113,7 @@ def make_env(settings: Settings) -> Any:
     return make_meta_env(settings.suite, settings.num_envs, settings.episodes, settings.workers)
 
 
+@torch_threads(1)
 def train(settings: Settings, out: Path, resume: bool = False,
           progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
     """Train (or resume) a run in `out`: checkpoints and metrics written as they come; the checkpoint path.
@@ -121,8 +122,6 @@ def train(settings: Settings, out: Path, resume: bool = False,
     streams derived from the seed and that update): deterministic, but not the bytes of an
     uninterrupted run."""
     torch = _torch()
-
-    torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
     state = resumed(out, settings, resume)

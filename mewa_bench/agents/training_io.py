@@ -30,7 +30,8 @@ from dataclasses import asdict, fields, is_dataclass
 from io import StringIO
 from pathlib import Path
 from types import ModuleType
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, TypeVar
 
 import numpy as np
@@ -74,6 +75,21 @@ def load_algorithm(name: str) -> ModuleType:
 def torch_module(feature: str) -> Any:
     """The torch module (the train extra; the datasets extra brings it too)."""
     return require("torch", "train", feature)
+
+
+@contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """torch's CPU threads set to `count` inside the block (or the decorated function) and the caller's count given
+    back after it; a count below 1 is a ValueError. Every trainer runs inside one."""
+    if count < 1:
+        raise ValueError(f"threads {count}: expected at least 1")
+    torch = torch_module("training")
+    callers = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(callers)
 
 
 def settings_with(cls: type[S], values: dict[str, Any], base: S | None = None, name: str = "") -> S:
@@ -312,7 +328,8 @@ def restore(out: Path, state: dict[str, Any], model: Any, optimizers: dict[str, 
 
 def load_for_play(checkpoint: str | Path, settings_class: type[S], build: Any) -> tuple[S, Any]:
     """A checkpoint's settings and `build(settings)` with its weights, in float64 evaluation mode on one
-    compute thread: how every vector agent plays (float64 so that the batch size cannot flip an action)."""
+    compute thread: how every vector agent plays (float64 so that the batch size cannot flip an action; the
+    transformers step a float32 copy and recompute in float64 what float32 could flip)."""
     torch = torch_module("playing a checkpoint")
     torch.set_num_threads(1)
     state = load_checkpoint(Path(checkpoint))
