@@ -13,8 +13,9 @@ lane and step), isolated, default lanes, on narrow-v2. Targets: batched >= 20x t
 steps/s, and >= 50,000 agent steps/s with --jobs 2. Its last line (alone: `--parts`) times the parts no
 runner can avoid and the ratio they allow.
 `--learned`: a ranked wide-v2 run (96 seeds, 7,680 units) of each shipped learned baseline with
---jobs 2, against the random agent's in the same run. Targets: each within 3 minutes, and the transformer
-agents' (DPT, AD) within 3x the random agent's.
+--jobs 2, against the random agent's in the same run, and whether its units are those of the submission's
+committed results file. Targets: each within 3 minutes, and the transformer agents' (DPT, AD) within 3x the
+random agent's.
 
     .venv/bin/python benchmarks/evaluate.py [--seeds N] [--bayes] [--neural] [--learned [--only A,B]] [--parts]
 """
@@ -35,6 +36,7 @@ from mewa_bench.design.suites import load_suite
 from mewa_bench.envs.mewa_env import MewaEnv
 from mewa_bench.protocol import runner
 from mewa_bench.protocol.config import DEFAULT_LANES, EvalConfig, default_seeds
+from mewa_bench.protocol.results import read_results
 from mewa_bench.protocol.runner import evaluate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -59,6 +61,12 @@ def env_steps_per_second(seconds: float = 1.0) -> float:
 
 def timed(agent: Path, seeds: tuple[int, ...], **kw) -> tuple[float, float, int]:
     """(total seconds, scoring seconds, agent steps) of one evaluate run."""
+    total, scoring, steps, _ = timed_results(agent, seeds, **kw)
+    return total, scoring, steps
+
+
+def timed_results(agent: Path, seeds: tuple[int, ...], **kw) -> tuple[float, float, int, dict]:
+    """(total seconds, scoring seconds, agent steps, results) of one evaluate run."""
     scoring = [0.0]
     finish = runner.finish
 
@@ -78,7 +86,7 @@ def timed(agent: Path, seeds: tuple[int, ...], **kw) -> tuple[float, float, int]
             total = time.perf_counter() - start
     finally:
         runner.finish = finish
-    return total, scoring[0], sum(sum(u["lengths"]) for u in results["units"])
+    return total, scoring[0], sum(sum(u["lengths"]) for u in results["units"]), results
 
 
 def main() -> None:
@@ -200,7 +208,7 @@ def parts(batched: Path, one_lane: Path, lanes: int = 64) -> None:
 
 
 LEARNED = ("rl2-wide-v2-seed1", "varibad-wide-v2-seed1", "pearl-wide-v2-seed1", "maml-wide-v2-seed1",
-           "dpt-wide-v2-seed1", "imitation-wide-v2-seed1", "ad-wide-v2-seed1")
+           "dpt-wide-v2-seed1", "imitation-wide-v2-seed1", "ad-wide-v2-seed1", "ad-task-structures-wide-v2-seed1")
 
 
 def learned(only: list[str]) -> None:
@@ -210,12 +218,23 @@ def learned(only: list[str]) -> None:
         raise SystemExit(f"--only: {', '.join(unknown)} not among {', '.join(LEARNED)}")
     seeds = default_seeds("wide-v2")
     print(f"wide-v2, {len(seeds)} seeds (ranked run), --jobs 2")
-    print(f"{'agent':<28} {'play s':>7} {'scoring s':>9} {'total s':>8} {'x random':>9}")
+    print(f"{'agent':<34} {'play s':>7} {'scoring s':>9} {'total s':>8} {'x random':>9}  units as committed")
     base = None
     for name in ("random", *(only or LEARNED)):
-        total, scoring, _ = timed(REPO / "submissions" / name / "agent.py", seeds, suite="wide-v2", jobs=2)
+        folder = REPO / "submissions" / name
+        total, scoring, _, results = timed_results(folder / "agent.py", seeds, suite="wide-v2", jobs=2)
         base = base or total
-        print(f"{name:<28} {total - scoring:>7.1f} {scoring:>9.1f} {total:>8.1f} {total / base:>9.2f}", flush=True)
+        print(f"{name:<34} {total - scoring:>7.1f} {scoring:>9.1f} {total:>8.1f} {total / base:>9.2f}  "
+              f"{as_committed(results, folder / 'results-wide-v2.json')}", flush=True)
+
+
+def as_committed(results: dict, committed: Path) -> str:
+    """Whether a run's units (returns and lengths of every pair and seed) are those of the committed results file."""
+    if not committed.exists():
+        return "(none committed)"
+    before = {(u["pair"], u["seed"]): (u["returns"], u["lengths"]) for u in read_results(committed)["units"]}
+    differ = sum(before.get((u["pair"], u["seed"])) != (u["returns"], u["lengths"]) for u in results["units"])
+    return "yes" if differ == 0 and len(before) == len(results["units"]) else f"no: {differ} of {len(before)} differ"
 
 
 if __name__ == "__main__":

@@ -89,11 +89,14 @@ def test_a_lane_plays_on_the_tokens_it_was_trained_on(tmp_path: Path) -> None:
         torch.testing.assert_close(played[:, lane], tokens[0], rtol=0, atol=1e-6)
         assert (torch.stack([lane_episode[lane] for _, lane_episode in seen]) == episode[0]).all()
     assert agent.cache.lengths.tolist() == [end - begin, 0, end - begin]
+    for lane in (0, 2):  # what an exact recomputation of the lane's step reads
+        kept_tokens, kept_episode = agent.history.of(lane)
+        assert np.array_equal(kept_tokens, tokens[0].numpy()) and np.array_equal(kept_episode, episode[0].numpy())
     with torch.no_grad():
-        full = agent.model(tokens.double(), episode, valid)[0]
-        replay = ad.ADVectorAgent(checkpoint, num_lanes=1)
-        cached = torch.stack([replay.model.step(tokens[0, t:t + 1].double(), episode[0, t:t + 1], replay.cache,
-                                                np.array([0]))[0] for t in range(end - begin)])
+        full = agent.exact(tokens.double(), episode, valid)[0]
+        cache = agent.exact.new_cache(1)
+        cached = torch.stack([agent.exact.step(tokens[0, t:t + 1].double(), episode[0, t:t + 1], cache,
+                                               np.array([0]))[0] for t in range(end - begin)])
     torch.testing.assert_close(cached, full, rtol=0, atol=1e-10)
 
 

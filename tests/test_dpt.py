@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("torch")
 
 from mewa_bench.agents import dpt  # noqa: E402
-from mewa_bench.agents.causal_transformer import OBS_SCALE, TOKEN, LaneCache  # noqa: E402
+from mewa_bench.agents.causal_transformer import OBS_SCALE, TOKEN  # noqa: E402
 from mewa_bench.design.suites import load_suite  # noqa: E402
 
 TWO_WORKERS = np.array([[0.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 0.0]])
@@ -49,7 +49,7 @@ def test_playing_with_the_kv_cache_gives_the_full_passs_logits() -> None:
     with torch.no_grad():
         full = model(tokens, episode, torch.ones(2, length, dtype=torch.bool))
         for lanes, empty in ((np.array([0, 2]), 1), (np.array([1, 2]), 0)):  # an index, then a slice of the cache
-            cache = LaneCache(settings.layers, 3, settings.heads, settings.context, settings.d_model // settings.heads)
+            cache = model.new_cache(3)
             stepped = torch.stack([model.step(tokens[:, t], episode[:, t], cache, lanes) for t in range(length)], dim=1)
             torch.testing.assert_close(stepped, full, rtol=0, atol=1e-12)
             assert not cache.layers[0][0][empty].any() and cache.lengths.tolist().count(length) == 2
@@ -66,7 +66,7 @@ def test_the_ring_buffer_plays_what_the_sliding_window_trains() -> None:
     tokens = torch.as_tensor(np.random.default_rng(1).normal(size=(1, 30, TOKEN)))
     episode = torch.as_tensor(np.repeat(np.arange(3), 10))[None]
     with torch.no_grad():
-        cache = LaneCache(settings.layers, 1, settings.heads, settings.context, settings.d_model // settings.heads)
+        cache = model.new_cache(1)
         stepped = torch.stack([model.step(tokens[:, t], episode[:, t], cache, np.array([0])) for t in range(30)], dim=1)
         full = model(tokens, episode, torch.ones(1, 30, dtype=torch.bool))
         unlimited = dpt.make_model(dpt.Settings(context=64, layers=2)).double().eval()

@@ -18,7 +18,9 @@ datasets build`, by default a learning-histories tier), the supervised training 
 - Tokens and model: DPT's (`agents.causal_transformer`): per frame the observation and the whole previous
   transition, an episode-index embedding counted from the window's first episode, a pre-norm causal
   transformer without position embeddings. `context` (default 1,000 = 10 episodes of at most 100 steps)
-  is at least a window's length, so every token attends to the whole window before it.
+  is at least a window's length, so every token attends to the whole window before it. `kv_heads` below
+  `heads` shares each key/value head among several query heads: a step of play reads heads / kv_heads
+  times fewer bytes of cache, which is what a step costs on a CPU.
 - Colour renaming (`rename_colours`, off by default): the rules do not care which palette colour is which
   (`game.relabel`), so a history with its colours renamed is a history of the renamed task with the same
   worker. Each window is then seen under a renaming drawn with the run's generator: on a wide suite a model
@@ -51,7 +53,7 @@ from mewa_bench.agents.causal_transformer import (EPISODES, OBS, TOKEN, Transfor
                                                   token_gather)
 from mewa_bench.agents.lanes import truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, fit_labels, load_for_play, offline_settings,
-                                           restore, resumed, torch_module)
+                                           restore, resumed, torch_module, torch_threads)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.game.relabel import renamings
 from mewa_bench.protocol.agent import SingleLane
@@ -78,6 +80,7 @@ class Settings:
     d_model: int = 64
     layers: int = 2
     heads: int = 4
+    kv_heads: int = 0  # key/value heads, each shared by heads / kv_heads query heads (0: one per query head)
     learning_rate: float = 1e-3
     anneal: bool = False  # the learning rate falls to 0 along a cosine over the run (false: constant)
     rename_colours: bool = False  # each window under a random renaming of the palette's colours (game.relabel)
@@ -156,7 +159,8 @@ def read_windows(settings: Settings) -> Windows:
 
 def make_model(settings: Settings) -> Any:
     """The causal transformer (`agents.causal_transformer`), as DPT's."""
-    return make_transformer(settings.d_model, settings.heads, settings.layers, settings.context)
+    return make_transformer(settings.d_model, settings.heads, settings.layers, settings.context,
+                            kv_heads=settings.kv_heads)
 
 
 def _torch() -> Any:
@@ -191,17 +195,10 @@ def train(settings: Settings, out: Path, resume: bool = False, data: Windows | N
           progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
     """Train (or resume) a run in `out` on `data` (default: the settings' datasets' sequences); the checkpoint
     path."""
-    torch = _torch()
-    if settings.threads < 1:
-        raise ValueError(f"threads {settings.threads}: expected at least 1")
     if settings.label not in LABELS:
         raise ValueError(f"label {settings.label!r}: expected one of {', '.join(LABELS)}")
-    callers = torch.get_num_threads()
-    torch.set_num_threads(settings.threads)
-    try:
+    with torch_threads(settings.threads):
         _fit(settings, out, resume, data, progress)
-    finally:
-        torch.set_num_threads(callers)
     return out / CHECKPOINT
 
 
@@ -241,8 +238,7 @@ class ADVectorAgent(TransformerLanes):
         self.settings, model = load_for_play(checkpoint, Settings, make_model)
         s = self.settings
         sample = s.sample_episodes if sample_episodes is None else int(sample_episodes)
-        super().__init__(model, s.layers, s.heads, s.d_model, s.context, int(num_lanes), int(seed), truthy(greedy),
-                         sample)
+        super().__init__(model, int(num_lanes), int(seed), truthy(greedy), sample)
 
 
 def ADAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:

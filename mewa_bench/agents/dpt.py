@@ -48,7 +48,7 @@ import numpy as np
 from mewa_bench.agents.causal_transformer import EPISODES, OBS, TOKEN, TransformerLanes, make_tokens, make_transformer
 from mewa_bench.agents.lanes import truthy
 from mewa_bench.agents.training_io import (CHECKPOINT, METRICS, fit_labels, load_for_play, offline_settings,
-                                           restore, resumed, torch_module)
+                                           restore, resumed, torch_module, torch_threads)
 from mewa_bench.agents.training_io import write_submission as write_submission_files
 from mewa_bench.protocol.agent import SingleLane
 
@@ -147,12 +147,11 @@ def make_model(settings: Settings) -> Any:
     return make_transformer(settings.d_model, settings.heads, settings.layers, settings.context)
 
 
+@torch_threads(1)
 def train(settings: Settings, out: Path, resume: bool = False, data: Sequences | None = None,
           progress: Callable[[int, int, dict[str, float]], None] = lambda steps, total, row: None) -> Path:
     """Train (or resume) a run in `out` on `data` (default: the settings' dataset); the checkpoint path."""
     torch = _torch()
-
-    torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(settings.seed)
     state = resumed(out, settings, resume)
@@ -198,8 +197,7 @@ class DPTVectorAgent(TransformerLanes):
     def __init__(self, checkpoint: str | Path, num_lanes: int = 1, seed: int | str = 0,
                  greedy: bool | str = False) -> None:
         self.settings, model = load_for_play(checkpoint, Settings, make_model)
-        s = self.settings
-        super().__init__(model, s.layers, s.heads, s.d_model, s.context, int(num_lanes), int(seed), truthy(greedy))
+        super().__init__(model, int(num_lanes), int(seed), truthy(greedy))
 
 
 def DPTAgent(checkpoint: str | Path, seed: int | str = 0, greedy: bool | str = False) -> SingleLane:

@@ -5,8 +5,10 @@ A vector agent plays every lane of an agent process with one network call per st
 - each lane draws from its own generator, seeded from the agent's seed and the unit's seed exactly
   as a one-lane agent seeds its own, and `LaneGenerators.choice` draws as `Generator.choice(n, p=p)`
   does (inverse CDF of one uniform), so one lane's draws never depend on the others;
-- the networks play in float64, so that a batch's matrix kernels, which may round differently at
-  another batch size, cannot flip a sampled action (float32 would, about once in 10^7 steps).
+- the networks' decisions are float64's, so that a batch's matrix kernels, which round differently at
+  another batch size, cannot flip an action (float32's rounding would, about once in 10^6 decisions):
+  the recurrent ones play in float64; the transformers (`causal_transformer.TransformerLanes`) step in
+  float32 and recompute in float64 the rare decisions that float32 could have turned.
 """
 
 from __future__ import annotations
@@ -39,14 +41,27 @@ class LaneGenerators:
     def choice(self, lanes: np.ndarray, probs: np.ndarray) -> np.ndarray:
         """One action per lane drawn from `probs` [n, k] (rows need not be normalised) with the lane's
         generator, the value `Generator.choice(k, p=row / row.sum())` would give."""
-        p = probs / probs.sum(axis=1, keepdims=True)
-        cdf = p.cumsum(axis=1)
-        cdf /= cdf[:, -1:]
-        uniforms = np.array([self.generators[lane].random() for lane in lanes.tolist()])
-        return (cdf <= uniforms[:, None]).sum(axis=1).astype(np.int64)
+        return inverse_cdf(probs, self.uniforms(lanes))
+
+    def uniforms(self, lanes: np.ndarray) -> np.ndarray:
+        """The next uniform of each lane's generator (what `choice` draws)."""
+        return np.array([self.generators[lane].random() for lane in lanes.tolist()])
 
     def __getitem__(self, lane: int) -> np.random.Generator:
         return self.generators[lane]
+
+
+def sampling_cdf(probs: np.ndarray) -> np.ndarray:
+    """The cumulative distribution `Generator.choice` samples by, of each row of `probs` [n, k]."""
+    p = probs / probs.sum(axis=1, keepdims=True)
+    cdf = p.cumsum(axis=1)
+    cdf /= cdf[:, -1:]
+    return cdf
+
+
+def inverse_cdf(probs: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
+    """The action `Generator.choice(k, p=row / row.sum())` gives for a row of `probs` [n, k] and its uniform [n]."""
+    return (sampling_cdf(probs) <= uniforms[:, None]).sum(axis=1).astype(np.int64)
 
 
 def pick_actions(probs: np.ndarray, lanes: np.ndarray, generators: LaneGenerators, greedy: bool,
