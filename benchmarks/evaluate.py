@@ -95,7 +95,7 @@ def main() -> None:
     parser.add_argument("--bayes", action="store_true", help="also time bayes-adaptive with the default protocol")
     parser.add_argument("--neural", action="store_true", help="also time a torch GRU agent, one-lane vs batched")
     parser.add_argument("--learned", action="store_true", help="also time ranked wide-v2 runs of the learned baselines")
-    parser.add_argument("--only", default="", help="with --learned: a comma-separated subset of its agents (the "
+    parser.add_argument("--only", default="", help="with --learned: a comma-separated list of submission folders (the "
                                                    "random agent, the baseline, always runs first)")
     parser.add_argument("--parts", action="store_true", help="only the --neural section's last line: the GRU's act() "
                                                                "one-lane and batched, the env's step, and their ceiling")
@@ -213,9 +213,10 @@ LEARNED = ("rl2-wide-v2-seed1", "varibad-wide-v2-seed1", "pearl-wide-v2-seed1", 
 
 def learned(only: list[str]) -> None:
     """Ranked wide-v2 runs (default seeds) with --jobs 2: random, then each learned baseline's wide-v2 run."""
-    unknown = sorted(set(only) - set(LEARNED))
+    unknown = sorted(name for name in only if not (REPO / "submissions" / name / "checkpoint.pt").exists())
     if unknown:
-        raise SystemExit(f"--only: {', '.join(unknown)} not among {', '.join(LEARNED)}")
+        raise SystemExit(f"--only: {', '.join(unknown)}: no submission folder with a checkpoint (the default runs: "
+                         f"{', '.join(LEARNED)})")
     seeds = default_seeds("wide-v2")
     print(f"wide-v2, {len(seeds)} seeds (ranked run), --jobs 2")
     print(f"{'agent':<34} {'play s':>7} {'scoring s':>9} {'total s':>8} {'x random':>9}  units as committed")

@@ -122,7 +122,7 @@ def test_float32_steps_take_the_float64_models_decisions(greedy: bool) -> None:
     model = make_transformer(d_model=32, heads=4, layers=2, context=48, kv_heads=2).double().eval()
     exact = play(TransformerLanes(model, 6, seed=1, greedy=greedy, sample_episodes=1, margin=0), 300, seed=2)
     for margin in (MARGIN, 0.05):
-        player = TransformerLanes(model, 6, seed=1, greedy=greedy, sample_episodes=1, margin=margin)
+        player = TransformerLanes(model, 6, seed=1, greedy=greedy, sample_episodes=1, margin=margin, cdf_margin=margin)
         played = play(player, 300, seed=2)
         assert all(np.array_equal(a, b) for a, b in zip(played, exact))
         assert player.cache.dtype == torch.float32 and (player.recomputed > 20 or margin == MARGIN)

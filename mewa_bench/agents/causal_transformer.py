@@ -110,6 +110,9 @@ def make_transformer(d_model: int, heads: int, layers: int, context: int, token_
             return x + self.mlp(self.norm2(x))
 
     class CausalTransformer(nn.Module):
+        # the tokens a token's logits depend on (itself and those before it): each layer reaches context - 1 back
+        receptive_field = layers * (context - 1) + 1
+
         def __init__(self) -> None:
             super().__init__()
             self.embed, self.episode = nn.Linear(token_size, d), nn.Embedding(episodes, d)
@@ -249,17 +252,17 @@ class LaneCache:
 
 
 def near_a_boundary(logits: np.ndarray, probs: np.ndarray, sampling: np.ndarray, uniforms: np.ndarray,
-                    margin: float) -> np.ndarray:
-    """Rows [n] whose decision is within `margin` of turning: greedy rows (not `sampling`) whose two best logits are
-    that close; sampled rows whose uniform (`uniforms`, one per sampled row) is that close to a step of the
-    cumulative distribution `probs` is sampled by."""
+                    margin: float, cdf_margin: float) -> np.ndarray:
+    """Rows [n] whose decision is close to turning: greedy rows (not `sampling`) whose two best logits are closer than
+    `margin`; sampled rows whose uniform (`uniforms`, one per sampled row) is closer than `cdf_margin` to a step of
+    the cumulative distribution `probs` is sampled by."""
     close = np.zeros(len(logits), dtype=bool)
     if margin <= 0:
         return close
     best_two = np.sort(logits[~sampling], axis=1)[:, -2:]
     close[~sampling] = best_two[:, 1] - best_two[:, 0] < margin
     steps = sampling_cdf(probs[sampling])[:, :-1]
-    close[sampling] = (np.abs(steps - uniforms[:, None]) < margin).any(axis=1)
+    close[sampling] = (np.abs(steps - uniforms[:, None]) < cdf_margin).any(axis=1)
     return close
 
 
@@ -292,7 +295,8 @@ class PairHistory:
         return self.tokens[lane, :n], self.episode[lane, :n]
 
 
-MARGIN = 1e-3  # decisions closer than this to a boundary (logits, or a uniform to the sampling cdf) are recomputed
+MARGIN = 1e-3  # greedy decisions whose two best logits are closer than this are recomputed in float64
+CDF_MARGIN = 1e-4  # sampled decisions whose uniform is closer than this to a step of the distribution are recomputed
 
 
 class TransformerLanes:
@@ -304,16 +308,16 @@ class TransformerLanes:
     The actions are those of the float64 model (`model` as given): a step runs a float32 copy of it (half the
     bytes of cache to read, which is what a step costs on a CPU), and a decision that float32's rounding could
     have turned (greedy: the two best logits closer than `margin`; sampled: the lane's uniform closer than
-    `margin` to a step of the cumulative distribution) is recomputed exactly, by the float64 model's full pass
-    over the lane's pair so far. float32's error in the logits is orders of magnitude below the margin, and the
-    full pass depends on the lane's own tokens only, so no lane's actions depend on its batch. `margin` 0 plays
-    the float64 model at every step."""
+    `cdf_margin` to a step of the cumulative distribution) is recomputed exactly, by the float64 model's pass over
+    the lane's last tokens that reach its step (`receptive_field`). float32's errors are far below the margins
+    (`benchmarks/README.md`), and the recomputation depends on the lane's own tokens only, so no lane's actions
+    depend on its batch. `margin` 0 plays the float64 model at every step."""
 
     def __init__(self, model: Any, num_lanes: int, seed: int, greedy: bool, sample_episodes: int = 0,
-                 margin: float = MARGIN) -> None:
+                 margin: float = MARGIN, cdf_margin: float = CDF_MARGIN) -> None:
         import copy
 
-        self.exact, self.margin = model, margin
+        self.exact, self.margin, self.cdf_margin = model, margin, cdf_margin
         self.model = copy.deepcopy(model).float() if margin > 0 else model
         self.greedy, self.sample_episodes = greedy, sample_episodes
         self.generators = LaneGenerators(seed, num_lanes)
@@ -350,7 +354,7 @@ class TransformerLanes:
         self.new_episode[lanes] = 0.0
         sampling = np.ones(len(lanes), dtype=bool) if not self.greedy else self.episode[lanes] < self.sample_episodes
         uniforms = self.generators.uniforms(lanes[sampling])
-        close = near_a_boundary(logits.numpy(), probs, sampling, uniforms, self.margin)
+        close = near_a_boundary(logits.numpy(), probs, sampling, uniforms, self.margin, self.cdf_margin)
         for row in np.flatnonzero(close):
             probs[row] = self.exact_probs(int(lanes[row]))
         self.recomputed += int(close.sum())
@@ -359,10 +363,11 @@ class TransformerLanes:
         return actions
 
     def exact_probs(self, lane: int) -> np.ndarray:
-        """The float64 model's action probabilities at lane `lane`'s last token: its full pass over the pair so far
-        (each token attending to the `context` tokens up to it, as the cache holds)."""
+        """The float64 model's action probabilities at lane `lane`'s last token: its full pass over the pair's tokens
+        that reach it (each token attending to the `context` tokens up to it, as the cache holds)."""
         torch = _torch()
         tokens, episode = self.history.of(lane)
+        tokens, episode = tokens[-self.exact.receptive_field:], episode[-self.exact.receptive_field:]
         with torch.no_grad():
             logits = self.exact(torch.as_tensor(tokens, dtype=torch.float64)[None], torch.as_tensor(episode)[None],
                                 torch.ones(1, len(tokens), dtype=torch.bool))[0, -1]
