@@ -22,8 +22,9 @@ per-lane key/value cache and the lanes that play it.
 - Lanes (`TransformerLanes`): what a vector agent keeps per lane besides the cache (the previous
   observation, action and reward, the new-episode flag, the episode index, the lane's generator, the pair's
   tokens so far) and how it picks actions (sampled with the lane's generator, or the most likely one). It
-  steps a float32 copy of the model and takes the float64 model's decisions: a decision within `MARGIN` of
-  turning is recomputed by the float64 full pass over the lane's pair (see the class).
+  steps a float32 copy of the model and takes the float64 model's decisions: a decision within `MARGIN`
+  (logits) or `CDF_MARGIN` (a sampled one's uniform) of turning is recomputed by the float64 pass over the
+  lane's tokens that reach the step (see the class).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from mewa_bench.agents.lanes import LaneGenerators, inverse_cdf, sampling_cdf
+from mewa_bench.agents.lanes import LaneGenerators, decided, sampled_rows, sampling_cdf
 from mewa_bench.agents.training_io import torch_module
 from mewa_bench.game.relabel import observation_gather
 from mewa_bench.protocol.agent import state_vector
@@ -352,15 +353,13 @@ class TransformerLanes:
                                      self.cache, lanes).double()
             probs = torch.softmax(logits, dim=1).numpy()
         self.new_episode[lanes] = 0.0
-        sampling = np.ones(len(lanes), dtype=bool) if not self.greedy else self.episode[lanes] < self.sample_episodes
+        sampling = sampled_rows(len(lanes), self.greedy, self.episode[lanes] < self.sample_episodes)
         uniforms = self.generators.uniforms(lanes[sampling])
         close = near_a_boundary(logits.numpy(), probs, sampling, uniforms, self.margin, self.cdf_margin)
         for row in np.flatnonzero(close):
             probs[row] = self.exact_probs(int(lanes[row]))
         self.recomputed += int(close.sum())
-        actions = np.argmax(probs, axis=1).astype(np.int64)
-        actions[sampling] = inverse_cdf(probs[sampling], uniforms)
-        return actions
+        return decided(probs, sampling, uniforms)
 
     def exact_probs(self, lane: int) -> np.ndarray:
         """The float64 model's action probabilities at lane `lane`'s last token: its full pass over the pair's tokens

@@ -64,16 +64,27 @@ def inverse_cdf(probs: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
     return (sampling_cdf(probs) <= uniforms[:, None]).sum(axis=1).astype(np.int64)
 
 
+def sampled_rows(n: int, greedy: bool, sampling: np.ndarray | None = None) -> np.ndarray:
+    """Which of `n` rows sample their action: all unless `greedy`; when greedy, the rows where `sampling` is True."""
+    if not greedy:
+        return np.ones(n, dtype=bool)
+    return np.zeros(n, dtype=bool) if sampling is None else np.asarray(sampling, dtype=bool)
+
+
+def decided(probs: np.ndarray, sampled: np.ndarray, uniforms: np.ndarray) -> np.ndarray:
+    """The most likely action of each row of `probs` [n, k], except that the `sampled` rows take the action their
+    uniform (one per sampled row) draws, as `Generator.choice` would."""
+    actions = np.argmax(probs, axis=1).astype(np.int64)
+    actions[sampled] = inverse_cdf(probs[sampled], uniforms)
+    return actions
+
+
 def pick_actions(probs: np.ndarray, lanes: np.ndarray, generators: LaneGenerators, greedy: bool,
                  sampling: np.ndarray | None = None) -> np.ndarray:
     """The most likely actions (`greedy`) or actions sampled with each lane's generator; when greedy, the lanes
     where `sampling` [n] is True still sample (e.g. a pair's first episodes)."""
-    if not greedy:
-        return generators.choice(lanes, probs)
-    actions = np.argmax(probs, axis=1).astype(np.int64)
-    if sampling is not None and sampling.any():
-        actions[sampling] = generators.choice(lanes[sampling], probs[sampling])
-    return actions
+    sampled = sampled_rows(len(lanes), greedy, sampling)
+    return decided(probs, sampled, generators.uniforms(lanes[sampled]))
 
 
 Forward = Callable[[Any, Any, Any], tuple[Any, Any]]  # (x [n, 24], h [n, H], reset [n]) -> (logits, new h)
