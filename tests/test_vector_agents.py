@@ -198,3 +198,56 @@ def test_a_logged_vector_agent_run_records_every_step(tmp_path: Path) -> None:
     assert len(rrd_rows(tmp_path / "run.rrd", f"/{ACTION}")) == steps
     scores = {(r["pair"], r["episode"]) for r in rrd_rows(tmp_path / "run.rrd", f"/{SCORE}")}
     assert scores == {(p, k) for p in (0, 3) for k in range(10)}
+
+
+LOGGED = '''import json
+import importlib.util
+
+spec = importlib.util.spec_from_file_location("vector_agent", {base!r})
+base = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(base)
+
+
+class VectorAgent(base.VectorAgent):
+    """The test agent, writing which lanes begin a unit (reset_task) and end an episode to `log`, in call order."""
+
+    def __init__(self, observation_space, action_space, num_lanes, log, **kwargs):
+        super().__init__(observation_space, action_space, num_lanes, **kwargs)
+        self.log = log
+
+    def record(self, call, lanes):
+        with open(self.log, "a") as f:
+            f.write(json.dumps([call, [int(lane) for lane in lanes]]) + "\\n")
+
+    def reset_task(self, lanes, seeds):
+        self.record("reset", lanes)
+        super().reset_task(lanes, seeds)
+
+    def end_episode(self, lanes):
+        self.record("end", lanes)
+        super().end_episode(lanes)
+'''
+
+
+def test_a_lane_whose_unit_ends_begins_the_next_unit_waiting(tmp_path: Path) -> None:
+    """Three units on two lanes: the lane that finishes first plays the third, whichever lane that is (dealt in turn,
+    lane 0 would play it after its own first unit and leave lane 1 idle)."""
+    agent, log = tmp_path / "logged_agent.py", tmp_path / "calls.jsonl"
+    agent.write_text(LOGGED.format(base=str(VECTOR)))
+    run(tmp_path, "r.json", agent=agent, lanes=2, pairs=(0,), seeds=(0, 1, 2), isolated=False,
+        agent_args={"log": str(log)})
+    calls = [json.loads(line) for line in log.read_text().splitlines()]
+    assert calls[0] == ["reset", [0, 1]]
+    episodes, first_done = {0: 0, 1: 0}, None
+    for at, (call, lanes) in enumerate(calls):
+        if call == "end":
+            for lane in lanes:
+                episodes[lane] += 1
+            done = [lane for lane in lanes if episodes[lane] == 10]
+            if done and first_done is None:
+                first_done = done[0]
+                begins = next(i for i in range(at + 1, len(calls)) if calls[i][0] == "reset")
+                assert calls[begins] == ["reset", [first_done]] and begins - at <= 2  # in the next round (after
+                # the other lane's end of episode, when it has one in that round)
+    assert first_done == 1  # the seeds make lane 1's unit the shorter: dealt in turn, it would have stayed idle
+    assert sum(call == "reset" for call, _ in calls) == 2

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import deque
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from datetime import datetime, timezone
 from multiprocessing import get_context
@@ -111,8 +112,9 @@ OnUnit = Callable[[dict[str, Any], float, UnitRecord | None], None]
 class _LanePlayer:
     """Plays units on an agent runner with `config.lanes` lanes (created on first use), one env per lane.
 
-    Units are dealt to lanes round-robin; all lanes advance together, one batched agent call per
-    round, so crossing the process boundary costs one round trip per round, not per step.
+    All lanes advance together, one batched agent call per round, so crossing the process boundary
+    costs one round trip per round, not per step; a lane whose unit ends takes the next unit not yet
+    begun, so the lanes stay full until the units run out (a lane's unit does not depend on its lane).
     """
 
     def __init__(self, config: EvalConfig, suite: Suite, collect: bool) -> None:
@@ -137,12 +139,12 @@ class _LanePlayer:
             except AgentError as e:
                 raise EvaluationError(e.kind, f"agent {c.agent_path}: {e}") from None
         n_lanes = len(self.envs)
-        queues = [list(units[lane::n_lanes]) for lane in range(n_lanes)]
+        waiting = deque(units)
         active: dict[int, tuple[Generator, AgentCall, float, int, int]] = {}
 
         def start(lane: int) -> None:
-            if queues[lane]:
-                pair, seed = queues[lane].pop(0)
+            if waiting:
+                pair, seed = waiting.popleft()
                 calls = unit_calls(self.envs[lane], self.suite, pair, seed, c, self.collect)
                 active[lane] = (calls, next(calls), time.perf_counter(), pair, seed)
 
