@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from mewa_bench.protocol.agent import SingleLane, Transition, check_actions, load_agent, load_lanes
-from mewa_bench.protocol.config import EvalConfig
+from mewa_bench.protocol.config import EPISODES_PER_PAIR, EvalConfig
 from mewa_bench.protocol.results import read_results
 from mewa_bench.protocol.runner import EvaluationError, evaluate
 
@@ -243,7 +243,7 @@ def test_a_lane_whose_unit_ends_begins_the_next_unit_waiting(tmp_path: Path) -> 
         if call == "end":
             for lane in lanes:
                 episodes[lane] += 1
-            done = [lane for lane in lanes if episodes[lane] == 10]
+            done = [lane for lane in lanes if episodes[lane] == EPISODES_PER_PAIR]
             if done and first_done is None:
                 first_done = done[0]
                 begins = next(i for i in range(at + 1, len(calls)) if calls[i][0] == "reset")
