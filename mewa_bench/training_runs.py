@@ -4,7 +4,8 @@
 learns from one, AD from one or more, an online one takes none); `plan_runs` fixes each seed's settings (whole
 updates), run folder and the command that reproduces the run; `train_here` trains the seeds one
 after the other in this process, `train_on_ray` as one Ray task per seed; `finish_run` records
-run.json and plots the training curve, which makes the folder a submission.
+run.json, plots the training curve and titles the README with the run's name on the boards (and, for an offline
+run, its data), which makes the folder a submission.
 """
 
 from __future__ import annotations
@@ -183,8 +184,22 @@ def finish_run(plan: TrainingPlan, job: Job, paths: list[Path]) -> list[Path]:
                                           steps=settings.total_steps, notes=notes,
                                           settings={**plan.algorithm.overrides, **plan.algorithm.offline}))
     curve = plot_training_curves({f"seed {settings.seed}": folder / plan.algorithm.module.METRICS},
-                                 folder / "training_curve.png", f"{algo} on {suite}, seed {settings.seed}")
+                                 folder / "training_curve.png", f"{plan.name} on {suite}, seed {settings.seed}")
+    name_readme(folder / "README.md", algo, plan.name, notes)
     return [*paths, info, curve]
+
+
+def name_readme(readme: Path, algo: str, name: str, data: str) -> None:
+    """Title a run's README with its name on the boards (`--algorithm`, when it is not the algorithm's own) and, for
+    an offline run, say what it learnt from (the dataset, its frames, build command and archive sha256)."""
+    from mewa_bench.files import write_atomic
+
+    text = readme.read_text()
+    if name != algo and text.startswith(f"# {algo} ("):
+        text = f"# {name} (" + text[len(f"# {algo} ("):]
+    if data and "\nTraining data: " not in text:
+        text += f"\nTraining data: {data}.\n"
+    write_atomic(readme, text)
 
 
 def _training_scalars(folder: Path, name: str, replay: bool):

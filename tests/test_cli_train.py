@@ -73,6 +73,8 @@ def test_train_set_changes_settings_under_an_algorithm_name_of_its_own(tmp_path:
         info = read_run_info(folder)
         assert (info.algorithm, info.seed, info.settings) == ("varibad-small", seed, {"latent": 3, "step_rewards": True})
         readme = (folder / "README.md").read_text()
+        assert readme.startswith(f"# varibad-small ({DEFAULT_SUITE}, seed {seed})\n")  # its name on the boards
+        assert "Training data:" not in readme  # an online run learns from no dataset
         assert "'latent': 3" in readme and "'step_rewards': True" in readme  # what the run was trained with
         command = re.search(r"mewa-bench train .*", readme).group(0)
         assert "--algorithm varibad-small --set latent=3 --set step_rewards=true" in command

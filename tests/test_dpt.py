@@ -156,7 +156,9 @@ def test_train_dpt_on_a_dataset_makes_a_submission_that_plays(tmp_path: Path) ->
         in text and "episode 1 -> 10" not in text
     info = json.loads((out / "run.json").read_text())
     assert (info["algorithm"], info["suite"], info["steps"]) == ("dpt", "narrow-v2", 32)
-    assert f"--dataset {data}" in (out / "README.md").read_text()
+    readme = (out / "README.md").read_text()
+    assert f"--dataset {data}" in readme and readme.startswith("# dpt (narrow-v2, seed 1)\n")
+    assert f"\nTraining data: {info['notes']}.\n" in readme  # what it learnt from
     results, _ = evaluate(EvalConfig(agent_path=out / "agent.py", suite="narrow-v2", out=tmp_path / "r.json",
                                      seeds=(0, 1), pairs=(0, 3)))
     assert len(results["units"]) == 4
