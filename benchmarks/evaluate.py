@@ -214,7 +214,8 @@ def parts(batched: Path, one_lane: Path, lanes: int = 64) -> None:
 
 
 LEARNED = ("rl2-wide-v2-seed1", "varibad-wide-v2-seed1", "pearl-wide-v2-seed1", "maml-wide-v2-seed1",
-           "dpt-wide-v2-seed1", "imitation-wide-v2-seed1", "ad-wide-v2-seed1", "ad-task-structures-wide-v2-seed1")
+           "dpt-wide-v2-seed1", "imitation-wide-v2-seed1", "ad-wide-v2-seed1", "ad-mqa-wide-v2-seed1",
+           "ad-task-structures-wide-v2-seed1")
 
 
 def learned(only: list[str], repeat: int = 1) -> None:

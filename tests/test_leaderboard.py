@@ -471,6 +471,14 @@ def test_ad_on_the_task_structures_adapts_over_its_runs_on_wide_v2() -> None:
     assert row["adapts"] == "yes" and float(row["gap_won_low"]) > 0 and float(row["gap_won"]) > 0.5
 
 
+def test_ad_with_one_key_value_head_adapts_over_its_runs_on_wide_v2() -> None:
+    """`ad-mqa` (AD's recipe with one key/value head: a quarter of the cache a step reads) wins more than half of
+    wide-v2's gap over its three runs, its interval over runs above the best fixed policy, and each run adapts."""
+    row = {r["algorithm"]: r for r in read_csv(REPO / "leaderboards" / "wide-v2-algorithms.csv")}["ad-mqa"]
+    assert row["runs"] == "3" and row["intervals"] == "over runs" and row["adapting_runs"] == "3"
+    assert row["adapts"] == "yes" and float(row["gap_won"]) > 0.5 and float(row["gap_won_low"]) > 0
+
+
 def rliable_check(cells_csv: Path, algorithms_csv: Path) -> int:
     """rliable's mean and IQM of every algorithm's [runs, pairs] cells equal the algorithms table's (to 1e-4);
     the number of algorithms checked."""
