@@ -173,7 +173,8 @@ def train_on_ray(plan: TrainingPlan, address: str, rerun: bool, seed_done: Calla
 
 
 def finish_run(plan: TrainingPlan, job: Job, paths: list[Path]) -> list[Path]:
-    """Make a trained run folder a submission: record run.json and plot its training curve; `paths` and those two."""
+    """Make a trained run folder a submission: record run.json, plot its training curve and title its README
+    (`name_readme`); `paths` and the first two."""
     from mewa_bench.reports.training_curves import plot_training_curves
 
     settings, folder, _, _ = job
@@ -194,6 +195,8 @@ def name_readme(readme: Path, algo: str, name: str, data: str) -> None:
     an offline run, say what it learnt from (the dataset, its frames, build command and archive sha256)."""
     from mewa_bench.files import write_atomic
 
+    if not readme.exists():  # an algorithm that writes no README: nothing to title
+        return
     text = readme.read_text()
     if name != algo and text.startswith(f"# {algo} ("):
         text = f"# {name} (" + text[len(f"# {algo} ("):]
