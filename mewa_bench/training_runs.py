@@ -195,8 +195,6 @@ def name_readme(readme: Path, algo: str, name: str, data: str) -> None:
     an offline run, say what it learnt from (the dataset, its frames, build command and archive sha256)."""
     from mewa_bench.files import write_atomic
 
-    if not readme.exists():  # an algorithm that writes no README: nothing to title
-        return
     text = readme.read_text()
     if name != algo and text.startswith(f"# {algo} ("):
         text = f"# {name} (" + text[len(f"# {algo} ("):]
